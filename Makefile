@@ -1,0 +1,28 @@
+# gainfpn: `make demo` and `make test` work from a fresh clone with only Python.
+PYTHON ?= python3
+VENV   := .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.installed-stamp
+
+.PHONY: install test test-slow demo sample-data clean
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -e '.[test]'
+	touch $(STAMP)
+
+install: $(STAMP)  ## create .venv and install gainfpn with its test tools
+
+test: $(STAMP)  ## the unit suite (slow end-to-end cases excluded)
+	$(BIN)/python -m pytest -q
+
+test-slow: $(STAMP)  ## only the slow end-to-end cases
+	$(BIN)/python -m pytest -q -m slow
+
+sample-data: $(STAMP)  ## regenerate sample_data/ (deterministic)
+	$(BIN)/gainfpn simulate sample_data/exr_burst --overwrite --size 192x128 --frames 8 --seed 1
+	$(BIN)/gainfpn simulate sample_data/dng_burst --overwrite --preset raw12 --size 128x96 --frames 8 --seed 2
+
+clean:
+	rm -rf $(VENV) build *.egg-info .pytest_cache .hypothesis

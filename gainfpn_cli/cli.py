@@ -1,0 +1,110 @@
+"""The ``gainfpn`` command line: parse, load, call one pipeline function, report.
+
+User errors (:class:`GainFPNError`) exit 1 with one line; usage errors exit 2
+(click); anything else is a bug and keeps its traceback.
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import click
+
+from . import __version__
+from .errors import GainFPNError
+
+
+class _Group(click.Group):
+    def invoke(self, ctx: click.Context):
+        try:
+            return super().invoke(ctx)
+        except GainFPNError as exc:
+            raise click.ClickException(str(exc)) from None
+
+
+@click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, prog_name="gainfpn")
+def main() -> None:
+    """Measure and remove gain fixed pattern noise (PRNU) from a moving burst.
+
+    Lim & El Gamal's method: track the scene through a hand-held burst and
+    choose per-pixel gains so that corrected brightness stays constant along
+    each motion trajectory.
+    """
+
+
+def _parse_size(ctx, param, value: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in value.lower().split("x"))
+    except ValueError:
+        raise click.BadParameter(f"must be WIDTHxHEIGHT such as 320x240, got {value!r}") from None
+    if w < 22 or h < 22:
+        raise click.BadParameter(f"must be at least 22x22 (LibRaw's smallest), got {value}")
+    return h, w
+
+
+def _prepare_out_dir(out_dir: Path, overwrite: bool, owned: tuple[str, ...]) -> None:
+    """Refuse a non-empty ``out_dir`` unless ``overwrite``; then clear what we own."""
+    if out_dir.exists() and not out_dir.is_dir():
+        raise click.ClickException(f"{out_dir}: exists and is not a directory")
+    if out_dir.is_dir() and any(out_dir.iterdir()):
+        if not overwrite:
+            raise click.ClickException(f"{out_dir}: directory is not empty (pass --overwrite to replace its results)")
+        for pattern in owned:
+            for old in out_dir.glob(pattern):
+                shutil.rmtree(old) if old.is_dir() else old.unlink()
+    out_dir.mkdir(parents=True, exist_ok=True)
+
+
+@main.command()
+@click.argument("out_dir", type=click.Path(file_okay=False, path_type=Path))
+@click.option("--preset", type=click.Choice(["paper", "raw12"]), default="paper", show_default=True,
+              help="Sensor: the paper's 8-bit sensor, or a 12-bit RGGB camera.")
+@click.option("--frames", "n_frames", type=click.IntRange(1, 1024), default=8, show_default=True)
+@click.option("--size", default="320x240", show_default=True, callback=_parse_size, help="WIDTHxHEIGHT in pixels.")
+@click.option("--format", "fmt", type=click.Choice(["exr", "dng"]), default=None,
+              help="Frame files [default: exr for paper, dng for raw12].")
+@click.option("--seed", type=click.IntRange(0), default=0, show_default=True)
+@click.option("--scene", type=click.Path(exists=True, dir_okay=False, path_type=Path),
+              help="Image to use as the scene [default: procedural texture].")
+@click.option("--fpn-pixel", type=click.FloatRange(0, 0.5), help="Sigma of the per-pixel gain.")
+@click.option("--fpn-column", type=click.FloatRange(0, 0.5), help="Sigma of the per-column gain.")
+@click.option("--fpn-row", type=click.FloatRange(0, 0.5), help="Sigma of the even/odd-row gain.")
+@click.option("--read-noise", type=click.FloatRange(0), help="Read noise, electrons RMS.")
+@click.option("--bits", type=click.IntRange(8, 16), help="ADC bits.")
+@click.option("--black", type=click.IntRange(0), help="Black level, DN.")
+@click.option("--cfa", type=click.Choice(["none", "RGGB", "BGGR", "GRBG", "GBRG"]), help="Colour filter array.")
+@click.option("--shake", type=click.FloatRange(0), default=2.0, show_default=True, help="Sigma of translation, px.")
+@click.option("--rotation", type=click.FloatRange(0), default=0.3, show_default=True, help="Sigma of rotation, deg.")
+@click.option("--drift", type=click.FloatRange(0), default=0.0, show_default=True, help="Pan over the burst, px.")
+@click.option("--exposure", type=click.FloatRange(0, min_open=True), default=0.75, show_default=True,
+              help="Electrons at scene value 1, as a fraction of full well.")
+@click.option("--overwrite", is_flag=True, help="Replace the results in a non-empty OUT_DIR.")
+def simulate(out_dir, preset, n_frames, size, fmt, seed, scene, fpn_pixel, fpn_column, fpn_row, read_noise, bits,
+             black, cfa, shake, rotation, drift, exposure, overwrite):
+    """Write a synthetic burst with known gains and motion into OUT_DIR."""
+    import dataclasses
+
+    from .io import read_scene
+    from .simulate import PRESETS, Shake, simulate_burst, with_overrides
+    from .truth import check_format, save_burst
+
+    sensor = with_overrides(PRESETS[preset], fpn_pixel=fpn_pixel, fpn_column=fpn_column, fpn_row=fpn_row,
+                            read_noise_e=read_noise, adc_bits=bits, black_level=black)
+    if cfa is not None:
+        sensor = dataclasses.replace(sensor, cfa=None if cfa == "none" else cfa)
+    if sensor.black_level >= sensor.white_level:
+        raise click.BadParameter(f"black level {sensor.black_level} leaves no range below {sensor.white_level}",
+                                 param_hint="--black")
+    fmt = fmt or ("dng" if sensor.cfa else "exr")
+    check_format(sensor, fmt)
+    motion = Shake(translation_px=shake, rotation_deg=rotation, drift_px=drift)
+    _prepare_out_dir(out_dir, overwrite, ("frame_*.exr", "frame_*.dng", "truth"))
+    burst = simulate_burst(shape=size, n_frames=n_frames, sensor=sensor, shake=motion, exposure=exposure,
+                           scene=None if scene is None else read_scene(scene), seed=seed)
+    parameters = {"seed": seed, "shape": list(size), "n_frames": n_frames, "exposure": exposure,
+                  "scene": str(scene) if scene else "procedural", "format": fmt,
+                  "sensor": dataclasses.asdict(sensor), "shake": dataclasses.asdict(motion)}
+    paths = save_burst(burst, out_dir, fmt=fmt, parameters=parameters)
+    click.echo(f"wrote {len(paths)} {fmt.upper()} frames ({size[1]}x{size[0]}) and truth/ to {out_dir}")

@@ -1,0 +1,254 @@
+"""Effective configuration: frozen dataclasses, strict YAML loading.
+
+Precedence is defaults < preset < YAML file < command-line flags. Every key is
+checked where it is read, and an error names the source and the key's path::
+
+    my.yaml: solver.block_size: must be a positive integer, got -16
+
+The dataclass defaults below are the documentation; ``configs/default.yaml``
+mirrors them with a one-line comment per key (a test keeps the two equal).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import math
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any, Callable, Mapping
+
+import yaml
+
+from .errors import ConfigError
+
+# --------------------------------------------------------------------------
+# value checks: each takes the raw YAML value and returns the converted value
+# or raises ValueError("must be ..., got ...")
+
+
+def _got(value: Any) -> str:
+    return f"got {value!r}"
+
+
+def _int(value: Any, *, minimum: int, what: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+        raise ValueError(f"must be {what}, {_got(value)}")
+    return value
+
+
+def positive_int(value: Any) -> int:
+    return _int(value, minimum=1, what="a positive integer")
+
+
+def non_negative_int(value: Any) -> int:
+    return _int(value, minimum=0, what="a non-negative integer")
+
+
+def non_negative_float(value: Any) -> float:
+    # YAML 1.1 reads `1e-4` (no dot) as a string; accept it, the intent is clear.
+    if isinstance(value, str):
+        try:
+            value = float(value)
+        except ValueError:
+            pass
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ValueError(f"must be a non-negative number, {_got(value)}")
+    if not math.isfinite(value) or value < 0:
+        raise ValueError(f"must be a finite non-negative number, {_got(value)}")
+    return float(value)
+
+
+def boolean(value: Any) -> bool:
+    if not isinstance(value, bool):
+        raise ValueError(f"must be true or false, {_got(value)}")
+    return value
+
+
+def choice(*options: str) -> Callable[[Any], str]:
+    def check(value: Any) -> str:
+        if value not in options:
+            raise ValueError(f"must be one of {', '.join(options)}, {_got(value)}")
+        return value
+
+    return check
+
+
+def optional(check: Callable[[Any], Any]) -> Callable[[Any], Any]:
+    def check_optional(value: Any) -> Any:
+        return None if value is None else check(value)
+
+    return check_optional
+
+
+def path_string(value: Any) -> str:
+    if not isinstance(value, str) or not value:
+        raise ValueError(f"must be a file path, {_got(value)}")
+    return value
+
+
+def _key(default: Any, check: Callable[[Any], Any], doc: str) -> Any:
+    return field(default=default, metadata={"check": check, "doc": doc})
+
+
+# --------------------------------------------------------------------------
+# sections
+
+#: EXR compressions that round-trip float32 exactly (see PITFALLS.md).
+LOSSLESS_COMPRESSIONS = ("none", "zip", "zips", "piz", "rle", "zstd")
+
+
+@dataclass(frozen=True)
+class InputConfig:
+    reference: int = _key(0, non_negative_int, "index of the reference frame, after sorting by name")
+    saturation: float | None = _key(
+        None,
+        optional(non_negative_float),
+        "DN (after black level) at or above which a pixel is clipped; null = from the file",
+    )
+    dark: str | None = _key(None, optional(path_string), "master dark frame subtracted first; null = none")
+
+
+@dataclass(frozen=True)
+class MotionConfig:
+    model: str = _key(
+        "auto",
+        choice("auto", "translation", "affine", "homography", "flow"),
+        "motion model; auto picks the simplest one the burst supports",
+    )
+
+
+@dataclass(frozen=True)
+class SolverConfig:
+    method: str = _key("accurate", choice("accurate", "paper"), "accurate, or the paper's published form")
+    block_size: int = _key(5, positive_int, "side of the square blocks of frame 0, in pixels")
+    lam: float = _key(0.0, non_negative_float, "ridge weight of lam * ||k - 1||^2")
+    interpolation: str = _key(
+        "bilinear", choice("bilinear", "cubic", "lanczos3"), "kernel that interpolates frames along trajectories"
+    )
+    workers: int = _key(2, positive_int, "processes that solve blocks in parallel")
+
+
+@dataclass(frozen=True)
+class OutputConfig:
+    compression: str = _key("zip", choice(*LOSSLESS_COMPRESSIONS), "EXR compression (lossless ones only)")
+    corrected: bool = _key(True, boolean, "write every corrected input frame")
+    preview: bool = _key(True, boolean, "write preview.png of the gain map")
+
+
+@dataclass(frozen=True)
+class Config:
+    input: InputConfig = field(default_factory=InputConfig)
+    motion: MotionConfig = field(default_factory=MotionConfig)
+    solver: SolverConfig = field(default_factory=SolverConfig)
+    output: OutputConfig = field(default_factory=OutputConfig)
+
+
+# --------------------------------------------------------------------------
+# loading
+
+
+def _unknown_key(key: Any, known: list[str]) -> str:
+    close = difflib.get_close_matches(str(key), known, n=1, cutoff=0.6)
+    hint = f" (did you mean {close[0]!r}?)" if close else f" (known keys: {', '.join(known)})"
+    return f"unknown key{hint}"
+
+
+def _section_type(f: dataclasses.Field) -> type | None:
+    default = f.default_factory() if f.default_factory is not dataclasses.MISSING else None
+    return type(default) if dataclasses.is_dataclass(default) else None
+
+
+def _merge(obj: Any, data: Any, *, source: str, prefix: str = "") -> Any:
+    """Return a copy of dataclass ``obj`` with the mapping ``data`` applied, checked."""
+    where = f"{source}: {prefix.rstrip('.') or '<top level>'}"
+    if not isinstance(data, Mapping):
+        raise ConfigError(f"{where}: must be a mapping of keys, got {type(data).__name__}")
+    known = {f.name: f for f in dataclasses.fields(obj)}
+    changes = {}
+    for key, value in data.items():
+        if key not in known:
+            raise ConfigError(f"{source}: {prefix}{key}: {_unknown_key(key, list(known))}")
+        f = known[key]
+        if _section_type(f) is not None:
+            changes[key] = _merge(getattr(obj, key), value, source=source, prefix=f"{prefix}{key}.")
+            continue
+        try:
+            changes[key] = f.metadata["check"](value)
+        except ValueError as exc:
+            raise ConfigError(f"{source}: {prefix}{key}: {exc}") from None
+    return dataclasses.replace(obj, **changes)
+
+
+def parse_config(text: str, *, source: str = "<config>", base: Config | None = None) -> Config:
+    """Apply YAML ``text`` on top of ``base`` (default: the built-in defaults)."""
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        at = f" (line {mark.line + 1})" if mark is not None else ""
+        raise ConfigError(f"{source}: not valid YAML{at}: {getattr(exc, 'problem', exc)}") from None
+    return _merge(base or Config(), {} if data is None else data, source=source)
+
+
+def preset_names() -> list[str]:
+    """Names of the presets shipped in ``configs/`` (besides ``default``)."""
+    files = resources.files("gainfpn_cli.configs").iterdir()
+    return sorted(p.name[:-5] for p in files if p.name.endswith(".yaml") and p.name != "default.yaml")
+
+
+def preset_text(name: str) -> str:
+    """YAML text of a shipped preset (``default``, ``fast``, ...)."""
+    names = preset_names() + ["default"]
+    if name not in names:
+        raise ConfigError(f"preset {name!r}: {_unknown_key(name, names).replace('key', 'preset')}")
+    return (resources.files("gainfpn_cli.configs") / f"{name}.yaml").read_text(encoding="utf-8")
+
+
+def load_config(
+    path: str | Path | None = None,
+    *,
+    preset: str | None = None,
+    overrides: Mapping[str, Any] | None = None,
+) -> Config:
+    """Effective config: defaults < ``preset`` < YAML file ``path`` < ``overrides``.
+
+    ``overrides`` maps dotted keys (``"solver.block_size"``) to values; keys
+    whose value is None are skipped (a flag that was not given).
+    """
+    cfg = Config()
+    if preset is not None:
+        cfg = parse_config(preset_text(preset), source=f"preset {preset}", base=cfg)
+    if path is not None:
+        path = Path(path)
+        try:
+            text = path.read_text(encoding="utf-8")
+        except OSError as exc:
+            raise ConfigError(f"{path}: cannot read config: {exc.strerror or exc}") from None
+        cfg = parse_config(text, source=str(path), base=cfg)
+    nested: dict[str, Any] = {}
+    for dotted, value in (overrides or {}).items():
+        if value is None:
+            continue
+        *parents, leaf = dotted.split(".")
+        node = nested
+        for part in parents:
+            node = node.setdefault(part, {})
+        node[leaf] = value
+    return _merge(cfg, nested, source="command line") if nested else cfg
+
+
+def dump_config(cfg: Config) -> str:
+    """YAML text that :func:`parse_config` reads back to an equal object."""
+    return yaml.safe_dump(dataclasses.asdict(cfg), sort_keys=False)
+
+
+def key_docs(cfg: Config | None = None) -> dict[str, str]:
+    """Dotted key -> one-line description, for documentation and tests."""
+    cfg = cfg or Config()
+    docs = {}
+    for section in dataclasses.fields(cfg):
+        for f in dataclasses.fields(getattr(cfg, section.name)):
+            docs[f"{section.name}.{f.name}"] = f.metadata["doc"]
+    return docs

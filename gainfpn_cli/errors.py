@@ -1,0 +1,21 @@
+"""Exceptions a user can meet; the CLI turns each into one line and exit 1."""
+
+
+class GainFPNError(Exception):
+    """Base class of every error gainfpn reports to the user."""
+
+
+class ConfigError(GainFPNError):
+    """A configuration file, preset or flag is wrong."""
+
+
+class InputError(GainFPNError):
+    """An input file or directory is missing, unreadable or inconsistent."""
+
+
+class EstimationError(GainFPNError):
+    """The data do not allow an estimate (no motion, no texture, ...)."""
+
+
+class GainFPNWarning(UserWarning):
+    """A result was produced but is weaker than asked for."""

@@ -1,0 +1,289 @@
+"""Seeded synthetic bursts with known truth.
+
+A scene (procedural texture, or a user image) is viewed through a hand-held
+camera: frame ``t`` sees reference-frame point ``p`` at ``H_t_ref @ p``. Each
+pixel integrates the scene over its area (``supersample**2`` sub-samples of a
+cubic-interpolated scene raster), then the sensor of METHOD.md section 1
+turns light into counts:
+
+    electrons ~ Poisson(a * e_ideal) + Normal(0, read_noise)
+    counts    = round(clip(electrons, 0, full_well) * dn_per_e) + black
+
+with the gain ``a`` = pixel x column x even/odd-row components. Every random
+source is its own child of one ``SeedSequence``: changing the noise level
+does not change the scene, motion or gains.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+CFA_CHANNEL = {"R": 0, "G": 1, "B": 2}
+
+
+@dataclass(frozen=True)
+class Sensor:
+    """Sensor and ADC; defaults are the paper's sensor (METHOD.md section 4)."""
+
+    conversion_gain_uv: float = 32.5  # uV per electron
+    swing_v: float = 1.0  # output swing, V
+    read_noise_e: float = 50.0  # electrons RMS
+    adc_bits: int = 8
+    black_level: int = 0  # DN added before the ADC clips
+    fpn_pixel: float = 0.05  # sigma of the per-pixel gain
+    fpn_column: float = 0.0  # sigma of the per-column gain
+    fpn_row: float = 0.0  # sigma of the even/odd-row gain
+    cfa: str | None = None  # 2x2 layout such as "RGGB", or None (monochrome)
+    shot_noise: bool = True  # Poisson photon noise (off only for tests of the model)
+
+    @property
+    def full_well_e(self) -> float:
+        return self.swing_v / (self.conversion_gain_uv * 1e-6)
+
+    @property
+    def white_level(self) -> int:
+        return 2**self.adc_bits - 1
+
+    @property
+    def dn_per_e(self) -> float:
+        return self.white_level / self.full_well_e
+
+
+@dataclass(frozen=True)
+class Shake:
+    """Hand-held camera motion relative to frame 0 (frame 0 is the identity)."""
+
+    translation_px: float = 2.0  # sigma of the per-frame translation, px
+    rotation_deg: float = 0.3  # sigma of the per-frame rotation about the centre
+    drift_px: float = 0.0  # steady pan over the whole burst, px, in a random direction
+    perspective: float = 0.0  # sigma of the projective terms, 1/px
+
+
+#: Named sensors: the paper's, and a 12-bit RGGB camera for DNG bursts.
+PRESETS = {
+    "paper": Sensor(),
+    "raw12": Sensor(conversion_gain_uv=50.0, swing_v=1.0, read_noise_e=3.0, adc_bits=12, black_level=256,
+                    fpn_pixel=0.01, cfa="RGGB"),
+}
+
+
+@dataclass(frozen=True)
+class Burst:
+    """A simulated burst and its truth.
+
+    Attributes
+    ----------
+    frames : ndarray of uint16, shape (F, H, W)
+        ADC counts, black level included.
+    gain : ndarray of float32, shape (H, W)
+        The true gain ``a`` (the correction is ``k = 1 / a`` up to a gauge).
+    ideal : ndarray of float32, shape (F, H, W)
+        Noise-free, FPN-free frames in DN after black level.
+    homographies : ndarray of float64, shape (F, 3, 3)
+        ``H_t_ref``: reference (frame 0) pixel coordinates to frame t.
+    sensor : Sensor
+    """
+
+    frames: np.ndarray
+    gain: np.ndarray
+    ideal: np.ndarray
+    homographies: np.ndarray
+    sensor: Sensor
+
+    @property
+    def saturation(self) -> int:
+        """Largest count above black the ADC can give."""
+        return self.sensor.white_level - self.sensor.black_level
+
+
+def shake_homographies(n_frames: int, shape: tuple[int, int], shake: Shake, rng: np.random.Generator) -> np.ndarray:
+    """``H_t_ref`` for each frame: rotation about the centre, translation, drift."""
+    h, w = shape
+    centre = np.array([(w - 1) / 2.0, (h - 1) / 2.0])
+    direction = rng.uniform(0, 2 * np.pi)
+    out = np.empty((n_frames, 3, 3))
+    out[0] = np.eye(3)
+    for t in range(1, n_frames):
+        angle = np.deg2rad(rng.normal(0.0, shake.rotation_deg))
+        shift = rng.normal(0.0, shake.translation_px, size=2)
+        shift += shake.drift_px * t / max(n_frames - 1, 1) * np.array([np.cos(direction), np.sin(direction)])
+        c, s = np.cos(angle), np.sin(angle)
+        rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        to_origin = np.array([[1.0, 0.0, -centre[0]], [0.0, 1.0, -centre[1]], [0.0, 0.0, 1.0]])
+        back = np.array([[1.0, 0.0, centre[0] + shift[0]], [0.0, 1.0, centre[1] + shift[1]], [0.0, 0.0, 1.0]])
+        persp = np.eye(3)
+        persp[2, :2] = rng.normal(0.0, shake.perspective, size=2)
+        out[t] = back @ rot @ persp @ to_origin
+    return out
+
+
+def procedural_scene(shape: tuple[int, int], rng: np.random.Generator, *, colour: bool = False) -> np.ndarray:
+    """A natural-looking texture in [0.05, 0.95]: multi-scale noise plus shapes.
+
+    Returns float32 ``(h, w)``, or ``(h, w, 3)`` with ``colour``.
+    """
+    import cv2
+
+    h, w = shape
+    grey = np.zeros(shape, np.float32)
+    cell = 3
+    while cell < max(h, w):
+        grid = rng.standard_normal((h // cell + 4, w // cell + 4)).astype(np.float32)
+        big = cv2.resize(grid, ((grid.shape[1]) * cell, (grid.shape[0]) * cell), interpolation=cv2.INTER_CUBIC)
+        grey += cell**0.5 * big[cell : cell + h, cell : cell + w]
+        cell *= 2
+    grey = (grey - grey.mean()) / (grey.std() + 1e-12)
+    n_shapes = max(8, h * w // 6000)
+    for _ in range(n_shapes):
+        level = float(rng.normal(0.0, 1.5))
+        x, y = int(rng.integers(0, w)), int(rng.integers(0, h))
+        size = int(rng.integers(3, max(4, min(h, w) // 6)))
+        if rng.random() < 0.5:
+            cv2.circle(grey, (x, y), size, level, -1, lineType=cv2.LINE_AA)
+        else:
+            pts = np.array([[x, y], [x + size, y + int(rng.integers(-size, size + 1))], [x + int(rng.integers(-size, size + 1)), y + size]], np.int32)
+            cv2.fillPoly(grey, [pts], level, lineType=cv2.LINE_AA)
+    lo, hi = np.percentile(grey, [1, 99])
+    grey = np.clip(0.05 + 0.9 * (grey - lo) / (hi - lo + 1e-12), 0.05, 0.95).astype(np.float32)
+    if not colour:
+        return grey
+    tint_grid = rng.uniform(0.55, 1.0, size=(4, 4, 3)).astype(np.float32)
+    tint = cv2.resize(tint_grid, (w, h), interpolation=cv2.INTER_CUBIC)
+    return np.clip(grey[:, :, None] * tint, 0.02, 0.95).astype(np.float32)
+
+
+def gain_pattern(shape: tuple[int, int], sensor: Sensor, rng: np.random.Generator) -> np.ndarray:
+    """True gain ``a`` = (1 + pixel) * (1 + column) * (1 + even/odd row), float32."""
+    h, w = shape
+    pixel = 1.0 + sensor.fpn_pixel * rng.standard_normal(shape)
+    column = 1.0 + sensor.fpn_column * rng.standard_normal(w)
+    row_pair = 1.0 + sensor.fpn_row * rng.standard_normal(2)
+    row = row_pair[np.arange(h) % 2]
+    return np.clip(pixel * column[None, :] * row[:, None], 0.05, None).astype(np.float32)
+
+
+def _margin(homographies: np.ndarray, shape: tuple[int, int]) -> int:
+    """Sensor pixels the scene must extend past the reference view."""
+    h, w = shape
+    corners = np.array([[-0.5, -0.5, 1], [w - 0.5, -0.5, 1], [-0.5, h - 0.5, 1], [w - 0.5, h - 0.5, 1]]).T
+    worst = 0.0
+    for H in homographies:
+        p = np.linalg.inv(H) @ corners
+        p = p[:2] / p[2]
+        worst = max(worst, float(np.max(-p)), float(np.max(p[0] - w)), float(np.max(p[1] - h)))
+    return int(np.ceil(worst)) + 4
+
+
+def render(scene: np.ndarray, H: np.ndarray, shape: tuple[int, int], *, scale: int, margin: int, supersample: int) -> np.ndarray:
+    """Area-integrate the scene as seen by a frame with homography ``H`` (ref -> frame).
+
+    Scene raster pixel ``j`` has its centre at reference coordinate
+    ``(j + 0.5) / scale - 0.5 - margin``.
+    """
+    import cv2
+
+    h, w = shape
+    Hinv = np.linalg.inv(H)
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
+    acc = np.zeros((h, w) + scene.shape[2:], np.float64)
+    steps = (np.arange(supersample) + 0.5) / supersample - 0.5
+    for dv in steps:
+        for du in steps:
+            X, Y = xs + du, ys + dv
+            den = Hinv[2, 0] * X + Hinv[2, 1] * Y + Hinv[2, 2]
+            px = (Hinv[0, 0] * X + Hinv[0, 1] * Y + Hinv[0, 2]) / den
+            py = (Hinv[1, 0] * X + Hinv[1, 1] * Y + Hinv[1, 2]) / den
+            map_x = ((px + margin + 0.5) * scale - 0.5).astype(np.float32)
+            map_y = ((py + margin + 0.5) * scale - 0.5).astype(np.float32)
+            acc += cv2.remap(scene, map_x, map_y, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+    return np.clip(acc / supersample**2, 0.0, None)
+
+
+def simulate_burst(
+    *,
+    shape: tuple[int, int] = (240, 320),
+    n_frames: int = 8,
+    sensor: Sensor = PRESETS["paper"],
+    shake: Shake = Shake(),
+    exposure: float = 0.75,
+    scene: np.ndarray | None = None,
+    supersample: int = 4,
+    seed: int = 0,
+) -> Burst:
+    """Simulate a hand-held burst with known gain, motion and ideal frames.
+
+    Parameters
+    ----------
+    shape : (int, int)
+        ``(H, W)`` of the frames, photosites.
+    exposure : float
+        Scene value 1.0 gives ``exposure * full_well`` electrons.
+    scene : ndarray, optional
+        Linear scene raster in [0, 1], ``(h, w)`` or ``(h, w, 3)``; it is
+        resized to cover the burst. Default: :func:`procedural_scene`.
+    supersample : int
+        Sub-samples per pixel side for area integration.
+    """
+    h, w = shape
+    if h < 2 or w < 2 or n_frames < 1:
+        raise ValueError(f"need frames of at least 2x2 and one frame, got shape {shape}, {n_frames} frames")
+    if sensor.cfa is not None and (len(sensor.cfa) != 4 or set(sensor.cfa) - set(CFA_CHANNEL)):
+        raise ValueError(f"sensor.cfa must be a 2x2 RGB layout such as RGGB, got {sensor.cfa!r}")
+    rng_scene, rng_motion, rng_gain, rng_noise = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(4))
+    homographies = shake_homographies(n_frames, shape, shake, rng_motion)
+    margin = _margin(homographies, shape)
+    scale = 2
+    raster_shape = ((h + 2 * margin) * scale, (w + 2 * margin) * scale)
+    colour = sensor.cfa is not None
+    if scene is None:
+        raster = procedural_scene(raster_shape, rng_scene, colour=colour)
+    else:
+        raster = _fit_scene(np.asarray(scene, np.float32), raster_shape, colour=colour)
+    gain = gain_pattern(shape, sensor, rng_gain)
+    frames = np.empty((n_frames, h, w), np.uint16)
+    ideal = np.empty((n_frames, h, w), np.float32)
+    full_scale_dn = float(sensor.white_level - sensor.black_level)
+    for t in range(n_frames):
+        light = render(raster, homographies[t], shape, scale=scale, margin=margin, supersample=supersample)
+        if colour:
+            light = _mosaic(light, sensor.cfa)
+        electrons = exposure * sensor.full_well_e * light
+        ideal[t] = np.minimum(electrons * sensor.dn_per_e, full_scale_dn)
+        collected = rng_noise.poisson(gain * electrons) if sensor.shot_noise else gain * electrons
+        signal = collected + rng_noise.normal(0.0, sensor.read_noise_e, shape)
+        counts = np.floor(np.clip(signal, 0.0, sensor.full_well_e) * sensor.dn_per_e + 0.5) + sensor.black_level
+        frames[t] = np.clip(counts, 0, sensor.white_level)
+    return Burst(frames=frames, gain=gain, ideal=ideal, homographies=homographies, sensor=sensor)
+
+
+def _mosaic(rgb: np.ndarray, cfa: str) -> np.ndarray:
+    out = np.empty(rgb.shape[:2], rgb.dtype)
+    for position, colour in enumerate(cfa):
+        dy, dx = divmod(position, 2)
+        out[dy::2, dx::2] = rgb[dy::2, dx::2, CFA_CHANNEL[colour]]
+    return out
+
+
+def _fit_scene(image: np.ndarray, shape: tuple[int, int], *, colour: bool) -> np.ndarray:
+    """Resize (keeping aspect) and centre-crop a scene image to cover ``shape``."""
+    import cv2
+
+    if image.ndim == 3 and not colour:
+        image = image[:, :, :3].mean(axis=2)
+    elif image.ndim == 2 and colour:
+        image = np.repeat(image[:, :, None], 3, axis=2)
+    elif image.ndim == 3:
+        image = image[:, :, :3] if image.shape[2] >= 3 else np.repeat(image[:, :, :1], 3, axis=2)
+    factor = max(shape[0] / image.shape[0], shape[1] / image.shape[1])
+    size = (max(shape[1], int(np.ceil(image.shape[1] * factor))), max(shape[0], int(np.ceil(image.shape[0] * factor))))
+    resized = cv2.resize(np.ascontiguousarray(image), size, interpolation=cv2.INTER_CUBIC)
+    y0, x0 = (resized.shape[0] - shape[0]) // 2, (resized.shape[1] - shape[1]) // 2
+    return np.clip(resized[y0 : y0 + shape[0], x0 : x0 + shape[1]], 0.0, 1.0).astype(np.float32)
+
+
+def with_overrides(sensor: Sensor, **changes) -> Sensor:
+    """``sensor`` with the given fields replaced (None values are ignored)."""
+    return dataclasses.replace(sensor, **{k: v for k, v in changes.items() if v is not None})

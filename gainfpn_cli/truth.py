@@ -1,0 +1,111 @@
+"""Simulated bursts on disk: frames plus a ``truth/`` folder.
+
+Layout of a simulation directory::
+
+    frame_000.exr ...            (or frame_000.dng ...)
+    truth/gain.exr               channel Y: the true gain a
+    truth/ideal.exr              channel Y: noise-free, FPN-free frame 0, DN after black
+    truth/homographies.json      H_t_ref per frame, and the conventions
+    truth/simulation.json        every parameter needed to make the burst again
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Mapping
+
+import numpy as np
+
+from . import __version__
+from .errors import InputError
+from .io import ATTR_CFA, ATTR_SATURATION, read_exr_planes, write_dng, write_exr, write_text
+from .simulate import Burst, Sensor
+
+FORMATS = ("exr", "dng")
+
+
+def check_format(sensor: Sensor, fmt: str) -> None:
+    """Raise :class:`InputError` if frames of ``sensor`` cannot be stored as ``fmt``."""
+    if fmt not in FORMATS:
+        raise ValueError(f"fmt must be one of {FORMATS}, got {fmt!r}")
+    if fmt == "dng" and sensor.cfa is None:
+        raise InputError("DNG output needs a colour filter array (give --cfa, e.g. RGGB)")
+    if fmt == "dng" and sensor.adc_bits not in (8, 10, 12, 16):
+        raise InputError(f"DNG output supports 8, 10, 12 or 16-bit data, not {sensor.adc_bits}-bit")
+
+
+def save_burst(
+    burst: Burst,
+    out_dir: str | Path,
+    *,
+    fmt: str = "exr",
+    parameters: Mapping[str, Any] | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> list[Path]:
+    """Write a burst's frames and truth into ``out_dir``; return the frame paths.
+
+    EXR frames hold float32 DN after black level, with the saturation level
+    and CFA layout as header attributes; DNG frames hold the raw counts with
+    black and white levels in their tags.
+    """
+    sensor = burst.sensor
+    check_format(sensor, fmt)
+    out_dir = Path(out_dir)
+    truth_dir = out_dir / "truth"
+    truth_dir.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for t, counts in enumerate(burst.frames):
+        path = out_dir / f"frame_{t:03d}.{fmt}"
+        if fmt == "dng":
+            write_dng(path, counts, bits=sensor.adc_bits, cfa=sensor.cfa, black=[sensor.black_level] * 4,
+                      white=sensor.white_level)
+        else:
+            metadata: dict[str, Any] = {ATTR_SATURATION: float(burst.saturation), "gainfpn:version": __version__}
+            if sensor.cfa:
+                metadata[ATTR_CFA] = sensor.cfa
+            write_exr(path, {"Y": counts.astype(np.float32) - sensor.black_level}, metadata=metadata)
+        paths.append(path)
+        if progress:
+            progress(1)
+    write_exr(truth_dir / "gain.exr", {"Y": burst.gain})
+    write_exr(truth_dir / "ideal.exr", {"Y": burst.ideal[0]})
+    write_text(
+        truth_dir / "homographies.json",
+        json.dumps(
+            {
+                "convention": "H_t_ref maps reference-frame (frame 0) pixel (x, y) to frame t; pixel centres at integers",
+                "H_t_ref": burst.homographies.tolist(),
+            },
+            indent=1,
+        ),
+    )
+    write_text(truth_dir / "simulation.json", json.dumps({"version": __version__, **(parameters or {})}, indent=1))
+    return paths
+
+
+@dataclass(frozen=True)
+class Truth:
+    """What a simulation directory knows: the true gain, ideal frame 0, motion."""
+
+    gain: np.ndarray
+    ideal: np.ndarray
+    homographies: np.ndarray
+    parameters: dict
+
+
+def load_truth(sim_dir: str | Path) -> Truth:
+    """Read ``sim_dir/truth``; raise :class:`InputError` when it is incomplete."""
+    truth_dir = Path(sim_dir) / "truth"
+    if not truth_dir.is_dir():
+        raise InputError(f"{sim_dir}: no truth/ folder (is this a directory written by `gainfpn simulate`?)")
+    gain, _ = read_exr_planes(truth_dir / "gain.exr")
+    ideal, _ = read_exr_planes(truth_dir / "ideal.exr")
+    try:
+        motion = json.loads((truth_dir / "homographies.json").read_text(encoding="utf-8"))
+        parameters = json.loads((truth_dir / "simulation.json").read_text(encoding="utf-8"))
+        homographies = np.asarray(motion["H_t_ref"], dtype=np.float64)
+    except (OSError, ValueError, KeyError) as exc:
+        raise InputError(f"{truth_dir}: unreadable truth ({exc})") from None
+    return Truth(gain=gain["Y"], ideal=ideal["Y"], homographies=homographies, parameters=parameters)

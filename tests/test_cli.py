@@ -1,0 +1,90 @@
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from gainfpn_cli import __version__, io
+from gainfpn_cli.cli import main
+
+
+@pytest.fixture()
+def runner():
+    return CliRunner()
+
+
+def test_every_command_has_help(runner):
+    result = runner.invoke(main, ["--help"])
+    assert result.exit_code == 0 and "gain fixed pattern noise" in result.output
+    for name, command in main.commands.items():
+        sub = runner.invoke(main, [name, "--help"])
+        assert sub.exit_code == 0, name
+        assert f" {name} [OPTIONS]" in sub.output and command.get_short_help_str()[:20] in sub.output
+
+
+def test_version(runner):
+    result = runner.invoke(main, ["--version"])
+    assert result.exit_code == 0 and __version__ in result.output
+
+
+def test_simulate_default_burst(runner, tmp_path):
+    out = tmp_path / "burst"
+    result = runner.invoke(main, ["simulate", str(out), "--size", "64x48", "--frames", "3"])
+    assert result.exit_code == 0, result.output
+    frames = io.read_stack(io.find_frames([out]))
+    assert len(frames) == 3 and frames[0].info.shape == (48, 64)
+    assert (out / "truth" / "gain.exr").is_file() and (out / "truth" / "homographies.json").is_file()
+
+
+def test_simulate_dng_burst_is_readable_raw(runner, tmp_path):
+    out = tmp_path / "raw"
+    result = runner.invoke(main, ["simulate", str(out), "--preset", "raw12", "--size", "64x48", "--frames", "2"])
+    assert result.exit_code == 0, result.output
+    frames = io.read_stack(io.find_frames([out]))
+    assert [f.info.kind for f in frames] == ["raw", "raw"] and frames[0].info.cfa == "RGGB"
+
+
+def test_simulate_refuses_to_mix_results(runner, tmp_path):
+    out = tmp_path / "b"
+    assert runner.invoke(main, ["simulate", str(out), "--size", "32x32", "--frames", "4"]).exit_code == 0
+    again = runner.invoke(main, ["simulate", str(out), "--size", "32x32", "--frames", "2"])
+    assert again.exit_code == 1
+    assert again.output.strip().splitlines() == [f"Error: {out}: directory is not empty (pass --overwrite to replace its results)"]
+    replaced = runner.invoke(main, ["simulate", str(out), "--size", "32x32", "--frames", "2", "--overwrite"])
+    assert replaced.exit_code == 0
+    assert sorted(p.name for p in out.glob("frame_*")) == ["frame_000.exr", "frame_001.exr"]
+
+
+def test_simulate_is_deterministic(runner, tmp_path):
+    for name in ("a", "b"):
+        assert runner.invoke(main, ["simulate", str(tmp_path / name), "--size", "32x32", "--frames", "2",
+                                    "--seed", "7"]).exit_code == 0
+    a, b = (io.read_frame(tmp_path / n / "frame_001.exr").data for n in ("a", "b"))
+    np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--size", "10x10"], "must be at least 22x22"),
+        (["--size", "big"], "must be WIDTHxHEIGHT"),
+        (["--fpn-pixel", "-0.1"], "--fpn-pixel"),
+        (["--format", "tiff"], "--format"),
+        (["--bits", "8", "--black", "300"], "black level 300 leaves no range"),
+    ],
+)
+def test_usage_errors_exit_2(runner, tmp_path, args, message):
+    result = runner.invoke(main, ["simulate", str(tmp_path / "x"), *args])
+    assert result.exit_code == 2 and message in result.output
+    assert not (tmp_path / "x").exists()
+
+
+def test_user_errors_exit_1_with_one_line(runner, tmp_path):
+    junk = tmp_path / "scene.png"
+    junk.write_bytes(b"not an image at all")
+    result = runner.invoke(main, ["simulate", str(tmp_path / "x"), "--scene", str(junk)])
+    assert result.exit_code == 1
+    assert result.output.startswith("Error: ") and str(junk) in result.output
+    assert len(result.output.strip().splitlines()) == 1
+    # DNG needs a CFA
+    result = runner.invoke(main, ["simulate", str(tmp_path / "y"), "--format", "dng", "--size", "32x32"])
+    assert result.exit_code == 1 and "DNG output needs a colour filter array" in result.output
+    assert not (tmp_path / "y").exists()  # refused before anything was written

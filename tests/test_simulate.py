@@ -1,0 +1,127 @@
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+from gainfpn_cli import io
+from gainfpn_cli.simulate import PRESETS, Shake, procedural_scene, render, simulate_burst, with_overrides
+from gainfpn_cli.truth import load_truth, save_burst
+
+PAPER = PRESETS["paper"]
+STILL = Shake(translation_px=0.0, rotation_deg=0.0)
+
+
+def test_paper_preset_is_the_papers_sensor():
+    assert (PAPER.conversion_gain_uv, PAPER.swing_v, PAPER.read_noise_e, PAPER.adc_bits, PAPER.fpn_pixel) == (
+        32.5, 1.0, 50.0, 8, 0.05)
+    assert PAPER.full_well_e == pytest.approx(30769.23, rel=1e-6)
+
+
+def test_no_fpn_no_noise_gives_the_ideal_frames():
+    # every noise off: frames are the ideal frames rounded by the ADC, exactly
+    sensor = with_overrides(PAPER, fpn_pixel=0.0, read_noise_e=0.0, shot_noise=False, black_level=3)
+    burst = simulate_burst(shape=(40, 56), n_frames=3, sensor=sensor, seed=5)
+    assert np.all(burst.gain == 1.0)
+    np.testing.assert_array_equal(burst.frames, np.floor(burst.ideal.astype(np.float64) + 0.5) + 3)
+
+
+def test_gain_spread_matches_sigma():
+    sensor = with_overrides(PAPER, fpn_pixel=0.03, fpn_column=0.04, fpn_row=0.02)
+    burst = simulate_burst(shape=(200, 400), n_frames=1, sensor=sensor, seed=9)
+    a = burst.gain.astype(np.float64)
+    column = a.mean(axis=0)
+    # column means hold the column gain plus pixel noise averaged over 200 rows
+    pixel_in_col = 0.03 / np.sqrt(200)
+    col_sigma = np.sqrt(max(column.var(ddof=1) - pixel_in_col**2, 0))
+    # sample sigma of n Gaussian values has relative error 1/sqrt(2n): allow 4 of those
+    assert col_sigma == pytest.approx(0.04, rel=4 / np.sqrt(2 * 400))
+    residual = a / column[None, :]
+    row_means = residual.mean(axis=1)
+    even, odd = row_means[0::2].mean(), row_means[1::2].mean()
+    assert abs(even - odd) > 0  # two row gains, drawn
+    pixel = residual / row_means[:, None]
+    assert pixel.std() == pytest.approx(0.03, rel=4 / np.sqrt(2 * a.size))
+
+
+def test_same_seed_same_burst_and_sources_are_independent():
+    a = simulate_burst(shape=(32, 48), n_frames=3, seed=4)
+    b = simulate_burst(shape=(32, 48), n_frames=3, seed=4)
+    for f in dataclasses.fields(a):
+        np.testing.assert_array_equal(np.asarray(getattr(a, f.name)), np.asarray(getattr(b, f.name)))
+    c = simulate_burst(shape=(32, 48), n_frames=3, seed=5)
+    assert not np.array_equal(a.frames, c.frames)
+    noisier = simulate_burst(shape=(32, 48), n_frames=3, seed=4, sensor=with_overrides(PAPER, read_noise_e=80.0))
+    np.testing.assert_array_equal(noisier.homographies, a.homographies)
+    np.testing.assert_array_equal(noisier.gain, a.gain)
+    np.testing.assert_array_equal(noisier.ideal, a.ideal)
+
+
+def test_rendering_follows_the_homography_convention():
+    # H_t_ref maps reference pixel p to p + (3, 2) in frame t, so frame t at
+    # (y + 2, x + 3) sees what the reference sees at (y, x)
+    scene = procedural_scene((140, 160), np.random.default_rng(0))
+    shift = np.array([[1.0, 0, 3], [0, 1.0, 2], [0, 0, 1.0]])
+    ref = render(scene, np.eye(3), (50, 60), scale=2, margin=10, supersample=3)
+    moved = render(scene, shift, (50, 60), scale=2, margin=10, supersample=3)
+    np.testing.assert_allclose(moved[2:, 3:], ref[:-2, :-3], rtol=0, atol=1e-5)
+
+
+def test_noise_statistics_match_the_sensor_model():
+    # still camera, no FPN: two frames differ by temporal noise only;
+    # var = 2 * (shot + read) in DN^2 plus 2/12 of rounding
+    sensor = with_overrides(PRESETS["raw12"], fpn_pixel=0.0, read_noise_e=20.0, cfa=None)
+    burst = simulate_burst(shape=(128, 160), n_frames=2, sensor=sensor, shake=STILL, seed=2)
+    np.testing.assert_array_equal(burst.ideal[0], burst.ideal[1])
+    diff = burst.frames[1].astype(np.float64) - burst.frames[0]
+    g = sensor.dn_per_e
+    expected = np.mean(2 * (burst.ideal[0] / g + sensor.read_noise_e**2) * g**2) + 2 / 12
+    # a variance from n samples has relative sd sqrt(2/n) = 0.5 % here; allow 4 sd
+    assert diff.var() == pytest.approx(expected, rel=4 * np.sqrt(2 / diff.size))
+
+
+def test_paper_sensor_reproduces_the_published_mse_before():
+    # METHOD.md section 4: about 32 DN^2 with 5 % FPN, noise floor about 1 DN^2
+    burst = simulate_burst(shape=(120, 160), n_frames=1, seed=2)
+    mse = np.mean((burst.frames[0] - burst.ideal[0]) ** 2)
+    floor = np.mean((burst.frames[0] / burst.gain - burst.ideal[0]) ** 2)
+    assert 20 < mse < 50
+    assert 0.8 < floor < 1.6
+
+
+def test_frame_zero_is_the_reference():
+    burst = simulate_burst(shape=(32, 48), n_frames=4, seed=1)
+    np.testing.assert_array_equal(burst.homographies[0], np.eye(3))
+    assert not np.allclose(burst.homographies[1], np.eye(3))
+
+
+def test_cfa_mosaic_samples_one_colour_per_site():
+    sensor = with_overrides(PRESETS["raw12"], fpn_pixel=0.0)
+    burst = simulate_burst(shape=(64, 64), n_frames=1, sensor=sensor, seed=1)
+    g = burst.ideal[0]
+    # a colour scene: the R and B planes differ from the G planes on average
+    assert abs(g[0::2, 0::2].mean() - g[1::2, 1::2].mean()) > 1.0
+
+
+@pytest.mark.parametrize("fmt", ["exr", "dng"])
+def test_saved_burst_reads_back_exactly(tmp_path, fmt):
+    burst = simulate_burst(shape=(32, 48), n_frames=3, sensor=PRESETS["raw12"], seed=6)
+    paths = save_burst(burst, tmp_path, fmt=fmt, parameters={"seed": 6})
+    frames = io.read_stack(paths)
+    for frame, counts in zip(frames, burst.frames):
+        np.testing.assert_array_equal(frame.data[:, :, 0], counts.astype(np.float32) - 256)
+        assert frame.info.cfa == "RGGB" and frame.info.saturation == 4095 - 256
+    truth = load_truth(tmp_path)
+    np.testing.assert_array_equal(truth.gain, burst.gain)
+    np.testing.assert_array_equal(truth.ideal, burst.ideal[0])
+    np.testing.assert_array_equal(truth.homographies, burst.homographies)  # JSON keeps float64 exactly
+    assert json.loads((tmp_path / "truth" / "simulation.json").read_text())["seed"] == 6
+
+
+def test_user_scene_is_used(rng):
+    scene = np.zeros((50, 50), np.float32)
+    scene[:, 25:] = 1.0
+    burst = simulate_burst(shape=(32, 32), n_frames=1, scene=scene, shake=STILL,
+                           sensor=with_overrides(PAPER, fpn_pixel=0.0), seed=1)
+    left, right = burst.ideal[0][:, :8].mean(), burst.ideal[0][:, -8:].mean()
+    assert left < 1 and right > 100
