@@ -82,6 +82,21 @@ def optional(check: Callable[[Any], Any]) -> Callable[[Any], Any]:
     return check_optional
 
 
+def positive_float(value: Any) -> float:
+    value = non_negative_float(value)
+    if value <= 0:
+        raise ValueError(f"must be a positive number, {_got(value)}")
+    return value
+
+
+def gain_range(value: Any) -> tuple[float, float]:
+    if (not isinstance(value, (list, tuple)) or len(value) != 2
+            or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
+            or not 0 < value[0] < 1 < value[1] or not math.isfinite(value[1])):
+        raise ValueError(f"must be [low, high] with 0 < low < 1 < high, {_got(value)}")
+    return (float(value[0]), float(value[1]))
+
+
 def path_string(value: Any) -> str:
     if not isinstance(value, str) or not value:
         raise ValueError(f"must be a file path, {_got(value)}")
@@ -128,6 +143,12 @@ class SolverConfig:
         "bilinear", choice("bilinear", "cubic", "lanczos3"), "kernel that interpolates frames along trajectories"
     )
     workers: int = _key(2, positive_int, "processes that solve blocks in parallel")
+    max_condition: float = _key(
+        1e4, positive_float, "a block system worse conditioned than this gets the smallest ridge that fixes it"
+    )
+    gain_range: tuple = _key(
+        (0.5, 2.0), gain_range, "gains outside [low, high] are not physical: such blocks are left unestimated"
+    )
 
 
 @dataclass(frozen=True)
@@ -241,7 +262,16 @@ def load_config(
 
 def dump_config(cfg: Config) -> str:
     """YAML text that :func:`parse_config` reads back to an equal object."""
-    return yaml.safe_dump(dataclasses.asdict(cfg), sort_keys=False)
+    return yaml.safe_dump(_plain(dataclasses.asdict(cfg)), sort_keys=False)
+
+
+def _plain(value: Any) -> Any:
+    """Tuples become lists, so the YAML holds no Python-specific tags."""
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, tuple):
+        return [_plain(v) for v in value]
+    return value
 
 
 def key_docs(cfg: Config | None = None) -> dict[str, str]:
