@@ -140,8 +140,14 @@ class SolverConfig:
     block_size: int = _key(5, positive_int, "side of the square blocks of frame 0, in pixels")
     lam: float = _key(0.0, non_negative_float, "ridge weight of lam * ||k - 1||^2")
     interpolation: str = _key(
-        "bilinear", choice("bilinear", "cubic", "lanczos3"), "kernel that interpolates frames along trajectories"
+        "lanczos4", choice("bilinear", "cubic", "lanczos4"),
+        "kernel of the accurate method (the paper method is bilinear by definition)",
     )
+    anchors: str = _key(
+        "all", choice("all", "reference"), "accurate method: every frame anchors comparisons, or only the reference"
+    )
+    gauge_sigma: float = _key(8.0, positive_float, "accurate method: gain structure wider than this (px) is gauged to 1")
+    tile: int = _key(512, positive_int, "accurate method: tiles of this side (px) are solved in parallel")
     workers: int = _key(2, positive_int, "processes that solve blocks in parallel")
     max_condition: float = _key(
         1e4, positive_float, "a block system worse conditioned than this gets the smallest ridge that fixes it"

@@ -1,0 +1,290 @@
+"""The accurate solver (``solver.method: accurate``): one seamless global
+solve that removes what limits the published form (METHOD.md section 5).
+
+Every frame ``s`` anchors comparisons with every other frame ``t``: pixel
+``q`` of frame ``s`` sees the scene point that frame ``t`` sees at
+``M_st q`` (``M_st = H_t H_s^-1``), so brightness constancy of the corrected
+frames reads
+
+    k(q) i_s(q)  =  sum_c w_c k(c) i_t(c)                              (*)
+
+where the right side interpolates the *corrected* frame ``t`` with a
+high-order kernel (Lanczos-4 by default). Anchoring all frames, not only the
+reference, averages the temporal noise of each pixel's own readings instead
+of copying frame 0's noise into ``k``.
+
+For each pixel, the least-squares ``k(q)`` given the right sides is
+``(M k)(q) = sum_{s,t} v i_s W_st(k i_t) / sum_{s,t} v i_s^2`` (``v``: the
+comparison is valid). The estimate is the fixed point ``k = M k``. Writing
+``k = 1 + x``, it solves ``(I - M + mu G) x = M 1 - 1`` by GMRES, where ``G``
+is a Gaussian low-pass: the low spatial frequencies that small motion cannot
+observe (METHOD.md 5.3) get a penalty that keeps the system well
+conditioned, and the final gauge divides ``k`` by its own low-pass, so the
+low band is 1 by construction and the mean is 1.
+
+The frame is cut into overlapping tiles, solved independently (in parallel)
+and blended with linear ramps in the overlaps. The tiling depends only on
+the frame size and ``tile``, so results are bit-identical for any number of
+workers.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .blocks import GainResult
+from .errors import EstimationError
+from .parallel import map_ordered
+from .warp import KERNELS, low_pass, sample, valid_samples
+
+#: Predicted standard error of k at which confidence is 0.5.
+CONFIDENCE_SCALE = 0.01
+
+
+@dataclass(frozen=True)
+class AccurateOptions:
+    """Options of the accurate solver.
+
+    Attributes
+    ----------
+    kernel : {"lanczos4", "cubic", "bilinear"}
+        Interpolation of the corrected frames along trajectories.
+    anchors : {"all", "reference"}
+        Which frames anchor comparisons: every frame (noise of each pixel's
+        own readings averaged) or only the reference (as the paper).
+    gauge_sigma : float
+        Gaussian sigma (px) of the low band that is gauged to 1.
+    mu : float
+        Weight of the low-band penalty in the solve.
+    rtol : float
+        GMRES relative tolerance.
+    maxiter : int
+        GMRES restarts at most (each of up to 50 iterations).
+    tile : int
+        Side of the tiles' cores (px); halo of ``halo`` px around each.
+    halo : int
+    robust_rounds : int
+        Re-solves with Cauchy weights ``1 / (1 + (r / (c s))^2)`` on the
+        residuals ``r`` of (*) (``s``: their robust spread, ``c``:
+        ``robust_scale``), which discount comparisons that interpolation
+        cannot predict (aliased edges) or that do not follow the motion.
+    robust_scale : float
+    """
+
+    kernel: str = "lanczos4"
+    anchors: str = "all"
+    gauge_sigma: float = 8.0
+    mu: float = 1.0
+    rtol: float = 1e-5
+    maxiter: int = 10
+    tile: int = 512
+    halo: int = 24
+    robust_rounds: int = 2
+    robust_scale: float = 3.0
+
+
+@dataclass(frozen=True)
+class _Tile:
+    y0: int
+    x0: int
+    frames: np.ndarray  # (F, h, w) crop of every frame over the tile and its halo
+    pair_maps: tuple  # ((s, t, M_st in crop coordinates), ...)
+    saturation: float
+    options: AccurateOptions
+
+
+def solve_accurate(
+    frames: np.ndarray,
+    homographies: np.ndarray,
+    *,
+    options: AccurateOptions = AccurateOptions(),
+    saturation: float | None = None,
+    workers: int = 2,
+    progress=None,
+) -> GainResult:
+    """Estimate ``k`` for a burst moving by global homographies.
+
+    Parameters
+    ----------
+    frames : ndarray, shape (F, H, W)
+        All frames, DN after offset removal; ``F >= 2``.
+    homographies : ndarray, shape (F, 3, 3)
+        ``H_t_ref`` of each frame (the reference's is the identity).
+    saturation : float, optional
+        Samples at or above this level are excluded.
+    """
+    frames = np.asarray(frames, dtype=np.float32)
+    homographies = np.asarray(homographies, dtype=np.float64)
+    if frames.ndim != 3 or frames.shape[0] < 2:
+        raise ValueError(f"frames must have shape (F, H, W) with F >= 2, got {frames.shape}")
+    if homographies.shape != (frames.shape[0], 3, 3) or not np.all(np.isfinite(homographies)):
+        raise ValueError(f"homographies must be finite with shape {(frames.shape[0], 3, 3)}, got {homographies.shape}")
+    if options.kernel not in KERNELS:
+        raise ValueError(f"kernel must be one of {', '.join(KERNELS)}, got {options.kernel!r}")
+    if options.anchors not in ("all", "reference"):
+        raise ValueError(f"anchors must be 'all' or 'reference', got {options.anchors!r}")
+    _check_motion(homographies, frames.shape[1:])
+    h, w = frames.shape[1:]
+    sat = np.inf if saturation is None else float(saturation)
+    tiles = _tiles(frames, homographies, sat, options)
+    results = map_ordered(_solve_tile, tiles, workers=workers, progress=progress)
+    k_sum = np.zeros((h, w))
+    conf_sum = np.zeros((h, w))
+    weight_sum = np.zeros((h, w))
+    iterations = []
+    for tile, (k, conf, its) in zip(tiles, results):
+        weight = _ramp(k.shape, tile, (h, w), options.halo) * (conf > 0)  # a tile speaks only where it estimated
+        sl = (slice(tile.y0, tile.y0 + k.shape[0]), slice(tile.x0, tile.x0 + k.shape[1]))
+        k_sum[sl] += weight * k
+        conf_sum[sl] += weight * conf
+        weight_sum[sl] += weight
+        iterations.append(its)
+    estimated = weight_sum > 0
+    k = np.divide(k_sum, weight_sum, out=np.ones((h, w)), where=estimated)
+    confidence = np.divide(conf_sum, weight_sum, out=np.zeros((h, w)), where=estimated)
+    if not estimated.any():
+        raise EstimationError("no pixel could be compared between frames (all clipped, dark or out of view)")
+    k[~estimated] = 1.0
+    k /= k[estimated].mean()
+    k[~estimated] = 1.0
+    stats = {
+        "tiles": len(tiles),
+        "gmres_iterations": iterations,
+        "unestimated_pixels": int((~estimated).sum()),
+        "median_confidence": float(np.median(confidence[estimated])),
+    }
+    return GainResult(k.astype(np.float32), confidence.astype(np.float32), stats)
+
+
+def _check_motion(homographies: np.ndarray, shape: tuple[int, int]) -> None:
+    h, w = shape
+    corners = np.array([[0, 0, 1], [w - 1, 0, 1], [0, h - 1, 1], [w - 1, h - 1, 1]], float).T
+    moved = []
+    for H in homographies:
+        p = H @ corners
+        moved.append(np.sqrt(np.mean(np.sum((p[:2] / p[2] - corners[:2]) ** 2, axis=0))))
+    if max(moved) < 0.01:
+        raise EstimationError(
+            "no motion: every frame is within 0.01 px of the reference, so the gain cannot be "
+            "estimated (pan or shake the camera during the burst)"
+        )
+
+
+def _tiles(frames, homographies, saturation, options) -> list[_Tile]:
+    n, h, w = frames.shape
+    core, halo = options.tile, options.halo
+    inverse = [np.linalg.inv(H) for H in homographies]
+    anchors = range(n) if options.anchors == "all" else [0]
+    tiles = []
+    for cy in range(0, h, core):
+        for cx in range(0, w, core):
+            y0, x0 = max(0, cy - halo), max(0, cx - halo)
+            y1, x1 = min(h, cy + core + halo), min(w, cx + core + halo)
+            shift = np.array([[1.0, 0, x0], [0, 1.0, y0], [0, 0, 1.0]])
+            maps = tuple(
+                (s, t, np.linalg.inv(shift) @ homographies[t] @ inverse[s] @ shift)
+                for s in anchors for t in range(n) if t != s
+            )
+            tiles.append(_Tile(y0, x0, frames[:, y0:y1, x0:x1], maps, saturation, options))
+    return tiles
+
+
+def _ramp(shape, tile: _Tile, full: tuple[int, int], halo: int) -> np.ndarray:
+    """Blend weight: 1 in the tile's core, falling linearly to ~0 across its halo."""
+
+    def axis(start, length, size):
+        pos = np.arange(start, start + length)
+        lo = pos - start + 0.5 if start > 0 else np.full(length, np.inf)
+        hi = start + length - pos - 0.5 if start + length < size else np.full(length, np.inf)
+        return np.clip(np.minimum(lo, hi) / max(halo, 1), 1e-3, 1.0)
+
+    return np.outer(axis(tile.y0, shape[0], full[0]), axis(tile.x0, shape[1], full[1]))
+
+
+def _solve_tile(tile: _Tile) -> tuple[np.ndarray, np.ndarray, int]:
+    """k, confidence and GMRES iterations for one tile (its halo included)."""
+    opt = tile.options
+    frames = tile.frames.astype(np.float64)
+    shape = frames.shape[1:]
+    good = (frames > 0) & (frames < tile.saturation)
+    valid = [valid_samples(good[t], M, shape, kernel=opt.kernel) & good[s] for s, t, M in tile.pair_maps]
+    weights = [v.astype(np.float64) for v in valid]
+    x = np.zeros(shape)
+    iterations = 0
+    for round_ in range(opt.robust_rounds + 1):
+        denom = sum(wt * frames[s] ** 2 for (s, _, _), wt in zip(tile.pair_maps, weights))
+        est = denom > 0
+        if not est.any():
+            return np.ones(shape), np.zeros(shape), iterations
+        x, its = _gmres_round(frames, tile, weights, denom, est, x)
+        iterations += its
+        k = 1.0 + x
+        residuals = _residuals(k, frames, tile)
+        if round_ < opt.robust_rounds:
+            spread = 1.4826 * np.median(np.abs(np.concatenate([r[v & est] for r, v in zip(residuals, valid)])))
+            scale = opt.robust_scale * max(spread, 1e-12)
+            weights = [v / (1.0 + (r / scale) ** 2) for r, v in zip(residuals, valid)]
+    k = k / low_pass(k, opt.gauge_sigma, est)  # the gauge: low band exactly 1
+    k[~est] = 1.0
+    confidence = _confidence(residuals, weights, valid, denom, est)
+    return k, confidence, iterations
+
+
+def _gmres_round(frames, tile, weights, denom, est, x0) -> tuple[np.ndarray, int]:
+    """Solve ``(I - M + mu G) x = M 1 - 1`` for one set of comparison weights."""
+    from scipy.sparse.linalg import LinearOperator, gmres
+
+    opt = tile.options
+    shape = frames.shape[1:]
+
+    def apply_m(k: np.ndarray) -> np.ndarray:
+        num = np.zeros(shape)
+        for (s, t, M), wt in zip(tile.pair_maps, weights):
+            num += wt * frames[s] * sample(k * frames[t], M, shape, kernel=opt.kernel)
+        return np.divide(num, denom, out=np.zeros(shape), where=est)
+
+    def operator(xv: np.ndarray) -> np.ndarray:
+        x = xv.reshape(shape)
+        y = x - apply_m(x) + opt.mu * low_pass(x, opt.gauge_sigma)
+        y[~est] = x[~est]
+        return y.ravel()
+
+    rhs = apply_m(np.ones(shape)) - 1.0
+    rhs[~est] = 0.0
+    count = [0]
+    size = rhs.size
+    x, _ = gmres(LinearOperator((size, size), matvec=operator, dtype=float), rhs.ravel(), x0=x0.ravel(),
+                 rtol=opt.rtol, restart=50, maxiter=opt.maxiter,
+                 callback=lambda _: count.__setitem__(0, count[0] + 1), callback_type="pr_norm")
+    return x.reshape(shape), count[0]
+
+
+def _residuals(k: np.ndarray, frames: np.ndarray, tile: _Tile) -> list[np.ndarray]:
+    """Residual of (*) for every comparison: ``k i_s - W_st(k i_t)``."""
+    shape = k.shape
+    return [k * frames[s] - sample(k * frames[t], M, shape, kernel=tile.options.kernel) for s, t, M in tile.pair_maps]
+
+
+def _confidence(residuals, weights, valid, denom, est) -> np.ndarray:
+    """``1 / (1 + (sigma_k / 1 %)^2)`` with ``sigma_k`` the predicted standard error of k.
+
+    ``sigma_k(q)^2 = v(q) / sum_{s,t} w i_s(q)^2``, where ``v(q)`` is the
+    weighted variance of the residuals of (*) in a 5x5 window around ``q``:
+    local, so that pixels next to features interpolation cannot follow
+    (aliased edges) report their larger uncertainty.
+    """
+    import cv2
+
+    shape = denom.shape
+    squares = np.zeros(shape)
+    counts = np.zeros(shape)
+    for r, wt, v in zip(residuals, weights, valid):
+        use = v & est
+        squares += np.where(use, wt * r**2, 0.0)
+        counts += np.where(use, wt, 0.0)
+    box = lambda a: cv2.boxFilter(a, -1, (5, 5), normalize=False, borderType=cv2.BORDER_REFLECT)  # noqa: E731
+    local = np.divide(box(squares), box(counts), out=np.full(shape, np.inf), where=box(counts) > 0)
+    sigma_k = np.sqrt(np.divide(local, denom, out=np.full(shape, np.inf), where=est))
+    return np.where(est, 1.0 / (1.0 + (sigma_k / CONFIDENCE_SCALE) ** 2), 0.0)

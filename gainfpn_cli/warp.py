@@ -1,0 +1,70 @@
+"""Resampling one frame onto another's pixel grid through a homography.
+
+OpenCV's ``warpPerspective`` with ``WARP_INVERSE_MAP`` computes
+``dst(q) = src(M q)`` without building coordinate maps. Its sub-pixel
+positions are quantised to 1/32 px (RMS position error 0.009 px), well below
+the 0.05 px the motion estimate is allowed.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: kernel name -> (OpenCV flag name, support radius in px)
+KERNELS = {
+    "bilinear": ("INTER_LINEAR", 1),
+    "cubic": ("INTER_CUBIC", 2),
+    "lanczos4": ("INTER_LANCZOS4", 4),
+}
+
+
+def _flag(kernel: str) -> int:
+    import cv2
+
+    try:
+        return getattr(cv2, KERNELS[kernel][0])
+    except KeyError:
+        raise ValueError(f"kernel must be one of {', '.join(KERNELS)}, got {kernel!r}") from None
+
+
+def sample(image: np.ndarray, M: np.ndarray, shape: tuple[int, int], *, kernel: str = "lanczos4") -> np.ndarray:
+    """``out[q] = image(M @ q)`` for every pixel ``q`` of a ``shape`` grid (float32)."""
+    import cv2
+
+    h, w = shape
+    return cv2.warpPerspective(np.asarray(image, np.float32), np.asarray(M, np.float64), (w, h),
+                               flags=_flag(kernel) | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REFLECT)
+
+
+def valid_samples(good: np.ndarray, M: np.ndarray, shape: tuple[int, int], *, kernel: str = "lanczos4") -> np.ndarray:
+    """Where :func:`sample` reads only good source pixels, all inside the source.
+
+    ``good`` marks usable source pixels (not clipped, not dark). A sample is
+    valid when every pixel of its kernel footprint is good: the bad set is
+    grown by the kernel's radius (and the frame's border counts as bad).
+    """
+    import cv2
+
+    radius = KERNELS[kernel][1]
+    ok = np.asarray(good, np.uint8)
+    ok = cv2.erode(ok, np.ones((2 * radius + 1, 2 * radius + 1), np.uint8), borderType=cv2.BORDER_CONSTANT,
+                   borderValue=0)
+    h, w = shape
+    out = cv2.warpPerspective(ok, np.asarray(M, np.float64), (w, h), flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
+                              borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    return out > 0
+
+
+def low_pass(image: np.ndarray, sigma: float, mask: np.ndarray | None = None) -> np.ndarray:
+    """Gaussian low-pass; with ``mask``, normalised so masked-out pixels do not count."""
+    import cv2
+
+    img = np.asarray(image, np.float32)
+    blur = lambda a: cv2.GaussianBlur(a, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)  # noqa: E731
+    if mask is None:
+        return blur(img).astype(np.float64)
+    m = np.asarray(mask, np.float32)
+    weight = blur(m).astype(np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = blur(img * m).astype(np.float64) / weight
+    return np.where(weight > 1e-6, out, 1.0)
