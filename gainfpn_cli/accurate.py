@@ -228,8 +228,24 @@ def _solve_tile(tile: _Tile) -> tuple[np.ndarray, np.ndarray, int]:
             weights = [v / (1.0 + (r / scale) ** 2) for r, v in zip(residuals, valid)]
     k = k / low_pass(k, opt.gauge_sigma, est)  # the gauge: low band exactly 1
     k[~est] = 1.0
-    confidence = _confidence(residuals, weights, valid, denom, est)
+    confidence = _confidence(residuals, weights, valid, _anchor_information(frames, tile, weights), est)
     return k, confidence, iterations
+
+
+def _anchor_information(frames, tile, weights) -> np.ndarray:
+    """``sum_s a_s(q) i_s(q)^2``, ``a_s`` the weighted fraction of frame s's comparisons that count.
+
+    The comparisons anchored on one reading ``i_s(q)`` share its noise, so k
+    learns from each reading once, not once per partner frame.
+    """
+    shape = frames.shape[1:]
+    partners: dict[int, int] = {}
+    for s, _, _ in tile.pair_maps:
+        partners[s] = partners.get(s, 0) + 1
+    info = np.zeros(shape)
+    for (s, _, _), wt in zip(tile.pair_maps, weights):
+        info += wt / partners[s] * frames[s] ** 2
+    return info
 
 
 def _gmres_round(frames, tile, weights, denom, est, x0) -> tuple[np.ndarray, int]:
@@ -267,17 +283,19 @@ def _residuals(k: np.ndarray, frames: np.ndarray, tile: _Tile) -> list[np.ndarra
     return [k * frames[s] - sample(k * frames[t], M, shape, kernel=tile.options.kernel) for s, t, M in tile.pair_maps]
 
 
-def _confidence(residuals, weights, valid, denom, est) -> np.ndarray:
+def _confidence(residuals, weights, valid, information, est) -> np.ndarray:
     """``1 / (1 + (sigma_k / 1 %)^2)`` with ``sigma_k`` the predicted standard error of k.
 
-    ``sigma_k(q)^2 = v(q) / sum_{s,t} w i_s(q)^2``, where ``v(q)`` is the
-    weighted variance of the residuals of (*) in a 5x5 window around ``q``:
-    local, so that pixels next to features interpolation cannot follow
-    (aliased edges) report their larger uncertainty.
+    ``sigma_k(q)^2 = v(q) / (2 sum_s a_s i_s(q)^2)``: ``v(q)`` is the weighted
+    variance of the residuals of (*) in a 5x5 window around ``q`` (local, so
+    that pixels next to features interpolation cannot follow report their
+    larger uncertainty); a residual holds the anchor's noise and about as much
+    again from the prediction, hence the 2; the sum counts each reading once
+    (:func:`_anchor_information`).
     """
     import cv2
 
-    shape = denom.shape
+    shape = information.shape
     squares = np.zeros(shape)
     counts = np.zeros(shape)
     for r, wt, v in zip(residuals, weights, valid):
@@ -286,5 +304,5 @@ def _confidence(residuals, weights, valid, denom, est) -> np.ndarray:
         counts += np.where(use, wt, 0.0)
     box = lambda a: cv2.boxFilter(a, -1, (5, 5), normalize=False, borderType=cv2.BORDER_REFLECT)  # noqa: E731
     local = np.divide(box(squares), box(counts), out=np.full(shape, np.inf), where=box(counts) > 0)
-    sigma_k = np.sqrt(np.divide(local, denom, out=np.full(shape, np.inf), where=est))
+    sigma_k = np.sqrt(np.divide(local, 2.0 * information, out=np.full(shape, np.inf), where=est & (information > 0)))
     return np.where(est, 1.0 / (1.0 + (sigma_k / CONFIDENCE_SCALE) ** 2), 0.0)

@@ -148,6 +148,10 @@ class SolverConfig:
     )
     gauge_sigma: float = _key(8.0, positive_float, "accurate method: gain structure wider than this (px) is gauged to 1")
     tile: int = _key(512, positive_int, "accurate method: tiles of this side (px) are solved in parallel")
+    fpn_model: str = _key(
+        "auto", choice("auto", "none", "row", "column", "column+row", "pixel"),
+        "accurate method: gain FPN model; auto picks the one with the lowest AIC",
+    )
     workers: int = _key(2, positive_int, "processes that solve blocks in parallel")
     max_condition: float = _key(
         1e4, positive_float, "a block system worse conditioned than this gets the smallest ridge that fixes it"

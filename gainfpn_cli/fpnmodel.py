@@ -1,0 +1,153 @@
+"""Choose the simplest gain-FPN model the estimate supports.
+
+Candidates, from fewest parameters to most:
+
+* ``none``: k = 1;
+* ``row``: even/odd row gains (the paper saw them on silicon);
+* ``column``: one gain per column;
+* ``column+row``: both;
+* ``pixel``: every pixel's own k, which contains the structured parts.
+
+A structured model averages each gain over a whole column or half the rows,
+so it is far less noisy than per-pixel k when the sensor's FPN really is
+structured. The choice minimises Akaike's criterion
+
+    AIC = sum_q ((k(q) - model(q)) / sigma_k(q))^2 + 2 p,
+
+``sigma_k`` the solver's predicted standard error of each k and ``p`` the
+parameters beyond the overall scale (the gauge fixes it for every model):
+0, 1, W - 1, W and N - 1. AIC estimates
+the prediction error on held-out data (it is asymptotically leave-one-out
+cross-validation, Stone 1977), which is what matters when the map corrects
+other captures.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .metrics import robust_spread
+
+MODELS = ("none", "row", "column", "column+row", "pixel")
+
+
+@dataclass(frozen=True)
+class FPNModel:
+    """The chosen model, its gain map and the FPN split.
+
+    Attributes
+    ----------
+    k : ndarray of float32, shape (H, W)
+        The correction under the chosen model.
+    chosen : str
+    scores : dict
+        AIC of every candidate (lower is better).
+    split : dict
+        Estimated input gain FPN in percent: ``pixel``, ``column``, ``row``
+        (spread of the gains ``1 / k`` attributed to each part).
+    """
+
+    k: np.ndarray
+    chosen: str
+    scores: dict = field(default_factory=dict)
+    split: dict = field(default_factory=dict)
+
+
+def structured_parts(k: np.ndarray, weight: np.ndarray, *, rounds: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """Column gains ``c`` (W,) and even/odd row gains ``r`` (2,) with ``k ~ c[x] r[y % 2]``.
+
+    Weighted means (weights ``weight``, zero for unestimated pixels),
+    alternated ``rounds`` times; both normalised to mean 1 where weighted.
+    """
+    h, w = k.shape
+    parity = np.arange(h) % 2
+    col = np.ones(w)
+    row = np.ones(2)
+    for _ in range(rounds):
+        per_row = row[parity][:, None]
+        wsum = weight.sum(axis=0)
+        col = np.divide((weight * k / per_row).sum(axis=0), wsum, out=np.ones(w), where=wsum > 0)
+        col /= np.average(col, weights=np.maximum(wsum, 1e-300)) if wsum.sum() > 0 else 1.0
+        for p in (0, 1):
+            sel = parity == p
+            wp = weight[sel]
+            total = wp.sum()
+            row[p] = (wp * k[sel] / col[None, :]).sum() / total if total > 0 else 1.0
+        counts = np.array([weight[parity == p].sum() for p in (0, 1)])
+        row /= np.average(row, weights=counts) if counts.sum() > 0 else 1.0
+    return col, row
+
+
+def select_model(k: np.ndarray, confidence: np.ndarray, *, sigma_scale: float = 0.01,
+                 force: str | None = None) -> FPNModel:
+    """Pick the model by AIC (or ``force`` one) and report the FPN split.
+
+    Parameters
+    ----------
+    k, confidence : ndarray, shape (H, W)
+        The solver's per-pixel estimate and its confidence
+        ``1 / (1 + (sigma_k / sigma_scale)^2)``, which gives ``sigma_k`` back.
+    force : str, optional
+        One of :data:`MODELS` instead of the AIC choice.
+    """
+    if force is not None and force not in MODELS:
+        raise ValueError(f"force must be one of {', '.join(MODELS)}, got {force!r}")
+    k = np.asarray(k, np.float64)
+    confidence = np.asarray(confidence, np.float64)
+    est = confidence > 0
+    sigma = np.full(k.shape, np.inf)
+    sigma[est] = sigma_scale * np.sqrt(1.0 / confidence[est] - 1.0)
+    sigma[est] = np.maximum(sigma[est], 1e-6)
+    weight = np.where(est, 1.0 / sigma**2, 0.0)
+    col, row = structured_parts(k, weight)
+    parity = np.arange(k.shape[0]) % 2
+    w = k.shape[1]
+    fits = {
+        # parameters beyond the overall scale, which the gauge fixes for every model
+        "none": (np.full(k.shape, _weighted_mean(k, weight)), 0),
+        "row": (np.broadcast_to(_rows_only(k, weight)[parity][:, None], k.shape), 1),
+        "column": (np.broadcast_to(_columns_only(k, weight)[None, :], k.shape), w - 1),
+        "column+row": (col[None, :] * row[parity][:, None], w),
+        "pixel": (np.where(est, k, 1.0), max(int(est.sum()) - 1, 0)),
+    }
+    scores = {}
+    for name, (fit, params) in fits.items():
+        chi2 = float(np.sum(weight[est] * (k[est] - fit[est]) ** 2))
+        scores[name] = chi2 + 2.0 * params
+    chosen = force or min(MODELS, key=lambda m: scores[m])
+    # a structured model knows every pixel of a column / row parity it has seen
+    model_k = np.array(fits[chosen][0], dtype=np.float64)
+    if est.any():
+        model_k /= model_k[est].mean()
+    if chosen == "pixel":
+        model_k[~est] = 1.0
+    pixel_part = np.divide(k, col[None, :] * row[parity][:, None])
+    split = {
+        "pixel": 100.0 * robust_spread(1.0 / pixel_part[est]) if est.any() else 0.0,
+        "column": 100.0 * robust_spread(1.0 / col[weight.sum(axis=0) > 0]) if est.any() else 0.0,
+        "row": 100.0 * abs(row[0] - row[1]) / 2.0,
+    }
+    return FPNModel(model_k.astype(np.float32), chosen, scores, split)
+
+
+def _weighted_mean(k: np.ndarray, weight: np.ndarray) -> float:
+    total = weight.sum()
+    return float((weight * k).sum() / total) if total > 0 else 1.0
+
+
+def _rows_only(k: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    parity = np.arange(k.shape[0]) % 2
+    out = np.ones(2)
+    for p in (0, 1):
+        total = weight[parity == p].sum()
+        out[p] = (weight[parity == p] * k[parity == p]).sum() / total if total > 0 else 1.0
+    return out
+
+
+def _columns_only(k: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    wsum = weight.sum(axis=0)
+    return np.divide((weight * k).sum(axis=0), wsum, out=np.ones(k.shape[1]), where=wsum > 0)
+
+
