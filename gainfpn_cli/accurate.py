@@ -71,6 +71,9 @@ class AccurateOptions:
         ``robust_scale``), which discount comparisons that interpolation
         cannot predict (aliased edges) or that do not follow the motion.
     robust_scale : float
+    gain_range : (float, float)
+        Gains outside it are not physical: those pixels are left unestimated
+        (k = 1, confidence 0) and counted.
     """
 
     kernel: str = "lanczos4"
@@ -83,6 +86,7 @@ class AccurateOptions:
     halo: int = 24
     robust_rounds: int = 2
     robust_scale: float = 3.0
+    gain_range: tuple[float, float] = (0.5, 2.0)
 
 
 @dataclass(frozen=True)
@@ -144,6 +148,10 @@ def solve_accurate(
     estimated = weight_sum > 0
     k = np.divide(k_sum, weight_sum, out=np.ones((h, w)), where=estimated)
     confidence = np.divide(conf_sum, weight_sum, out=np.zeros((h, w)), where=estimated)
+    low, high = options.gain_range
+    absurd = estimated & ((k < low) | (k > high))
+    estimated &= ~absurd
+    confidence[absurd] = 0.0
     if not estimated.any():
         raise EstimationError("no pixel could be compared between frames (all clipped, dark or out of view)")
     k[~estimated] = 1.0
@@ -153,6 +161,7 @@ def solve_accurate(
         "tiles": len(tiles),
         "gmres_iterations": iterations,
         "unestimated_pixels": int((~estimated).sum()),
+        "out_of_range_pixels": int(absurd.sum()),
         "median_confidence": float(np.median(confidence[estimated])),
     }
     return GainResult(k.astype(np.float32), confidence.astype(np.float32), stats)

@@ -164,3 +164,14 @@ def test_validates():
         solve_accurate(np.zeros((2, 8, 8)), np.eye(3)[None])
     with pytest.raises(ValueError, match="kernel must be"):
         solve_accurate(np.zeros((2, 8, 8)), np.stack([np.eye(3)] * 2), options=AccurateOptions(kernel="sinc"))
+
+
+def test_gains_outside_the_physical_range_are_not_emitted():
+    burst = simulate_burst(shape=(48, 64), n_frames=5, seed=8)
+    frames = burst.frames.astype(np.float32)
+    narrow = AccurateOptions(gain_range=(0.99, 1.01))  # narrower than the 5 % FPN
+    result = solve_accurate(frames, burst.homographies, saturation=burst.saturation, workers=1, options=narrow)
+    est = result.confidence > 0
+    assert result.stats["out_of_range_pixels"] > 0
+    assert np.all(result.k[~est] == 1.0)
+    assert np.all((result.k >= 0.98) & (result.k <= 1.02))  # the final mean-1 rescale moves the range a little
