@@ -40,3 +40,192 @@ def positions_from_flow(flow_xy: np.ndarray) -> np.ndarray:
     h, w = flow_xy.shape[:2]
     ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
     return np.stack([xs + flow_xy[..., 0], ys + flow_xy[..., 1]], axis=-1)
+
+
+# ---------------------------------------------------------------------------
+# global warps from the frames
+
+
+from dataclasses import dataclass, field  # noqa: E402
+
+from .errors import EstimationError  # noqa: E402
+
+#: Parameters of each global model, simplest first.
+MODEL_PARAMS = {"translation": 2, "affine": 6, "homography": 8}
+MIN_POINTS = {"translation": 3, "affine": 6, "homography": 8}
+
+
+@dataclass(frozen=True)
+class MotionResult:
+    """Global motion of every frame relative to the reference.
+
+    Attributes
+    ----------
+    homographies : ndarray of float64, shape (F, 3, 3)
+        ``H_t_ref`` under the chosen model (identity for the reference).
+    model : str
+        The chosen model (``translation``, ``affine`` or ``homography``).
+    per_frame : list of dict
+        For each frame: ``tracked`` and ``inliers`` point counts, ``rms_px``
+        (inlier residual under the chosen model) and ``bic`` of each model.
+    reason : str
+        Why that model was chosen.
+    """
+
+    homographies: np.ndarray
+    model: str
+    per_frame: list = field(default_factory=list)
+    reason: str = ""
+
+
+#: Gaussian sigma (px) applied before tracking: gain FPN is white at the pixel
+#: scale, scene structure is not, so smoothing suppresses the static pattern
+#: that otherwise pulls corners toward zero motion. Measured on 240x320
+#: bursts with 5 % FPN, worst-frame RMS error: 1.31 px unsmoothed, 0.24 px at
+#: sigma 1.5, 0.048 px at sigma 1.5 with TRACK_QUALITY 0.03.
+TRACK_SIGMA = 1.5
+#: goodFeaturesToTrack quality: keep corners at least this fraction as
+#: strong as the best (weak "corners" in flat areas are FPN, not scene).
+TRACK_QUALITY = 0.03
+#: Inlier threshold (px) of the robust homography fit.
+INLIER_PX = 0.3
+
+
+def to_uint8(frame: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """Scale ``[lo, hi]`` to 0..255 (OpenCV's trackers take 8-bit images only)."""
+    scaled = (np.asarray(frame, np.float32) - lo) * (255.0 / max(hi - lo, 1e-12))
+    return np.clip(scaled + 0.5, 0, 255).astype(np.uint8)
+
+
+def tracking_image(frame: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """The 8-bit, FPN-suppressed image that points are tracked on."""
+    import cv2
+
+    return to_uint8(cv2.GaussianBlur(np.asarray(frame, np.float32), (0, 0), TRACK_SIGMA), lo, hi)
+
+
+def track_points(reference: np.ndarray, frame: np.ndarray, *, max_points: int = 4000,
+                 quality: float = TRACK_QUALITY) -> tuple[np.ndarray, np.ndarray]:
+    """Corners of the reference tracked into ``frame`` by pyramidal Lucas-Kanade.
+
+    Both images are uint8. Points whose forward-backward track misses its
+    start by more than 0.1 px are dropped. Returns ``(src, dst)``, each
+    ``(n, 2)`` float64 ``(x, y)``.
+    """
+    import cv2
+
+    h, w = reference.shape
+    spacing = max(4, int(np.sqrt(h * w / max_points)))
+    corners = cv2.goodFeaturesToTrack(reference, maxCorners=max_points, qualityLevel=quality, minDistance=spacing,
+                                      blockSize=7)
+    if corners is None:
+        return np.empty((0, 2)), np.empty((0, 2))
+    params = dict(winSize=(21, 21), maxLevel=5, criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 60, 1e-3))
+    try:
+        moved, st1, _ = cv2.calcOpticalFlowPyrLK(reference, frame, corners, None, **params)
+        back, st2, _ = cv2.calcOpticalFlowPyrLK(frame, reference, moved, None, **params)
+    except cv2.error as exc:
+        raise EstimationError(f"point tracking failed: {exc.err}") from None
+    ok = (st1.ravel() == 1) & (st2.ravel() == 1) & (np.linalg.norm((back - corners).reshape(-1, 2), axis=1) < 0.1)
+    return corners.reshape(-1, 2)[ok].astype(np.float64), moved.reshape(-1, 2)[ok].astype(np.float64)
+
+
+def fit_models(src: np.ndarray, dst: np.ndarray, *, threshold: float = INLIER_PX) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """Fit translation, affine and homography to point pairs on one robust inlier set.
+
+    The inliers are those of a USAC-MAGSAC homography (``threshold`` px); each
+    model is then refitted by least squares on them. Returns the 3x3
+    matrices by model and the inlier mask.
+    """
+    import cv2
+
+    n = len(src)
+    if n < MIN_POINTS["homography"]:
+        raise EstimationError(f"only {n} points could be tracked; need {MIN_POINTS['homography']}")
+    _, mask = cv2.findHomography(src, dst, cv2.USAC_MAGSAC, threshold, maxIters=5000, confidence=0.9999)
+    if mask is None:
+        raise EstimationError("no homography fits the tracked points")
+    inliers = mask.ravel().astype(bool)
+    if inliers.sum() < MIN_POINTS["homography"]:
+        raise EstimationError(f"only {int(inliers.sum())} inliers; need {MIN_POINTS['homography']}")
+    s, d = src[inliers], dst[inliers]
+    H, _ = cv2.findHomography(s, d, 0)  # least squares (DLT + Levenberg-Marquardt) on the inliers
+    A = _fit_affine(s, d)
+    T = np.eye(3)
+    T[:2, 2] = np.mean(d - s, axis=0)
+    return {"translation": T, "affine": A, "homography": H / H[2, 2]}, inliers
+
+
+def _fit_affine(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    design = np.hstack([src, np.ones((len(src), 1))])
+    coef, *_ = np.linalg.lstsq(design, dst, rcond=None)
+    A = np.eye(3)
+    A[:2, :] = coef.T
+    return A
+
+
+def transfer_residuals(H: np.ndarray, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Distances (px) between ``H src`` and ``dst``."""
+    p = np.hstack([src, np.ones((len(src), 1))]) @ H.T
+    return np.linalg.norm(p[:, :2] / p[:, 2:3] - dst, axis=1)
+
+
+def estimate_global_motion(
+    frames: np.ndarray,
+    *,
+    model: str = "auto",
+    progress=None,
+) -> MotionResult:
+    """``H_t_ref`` for every frame of a burst whose first frame is the reference.
+
+    Corners of the reference are tracked into each frame (pyramidal
+    Lucas-Kanade: shakes of tens of pixels work) and the global models are
+    fitted to them. With ``model="auto"`` the burst gets the model with the
+    lowest total BIC, ``sum_t n_t ln(RSS_t / n_t) + p ln(n_t)``, over frames
+    (``n_t``: coordinates of inliers) — the simplest the data support.
+    """
+    if model != "auto" and model not in MODEL_PARAMS:
+        raise ValueError(f"model must be auto or one of {', '.join(MODEL_PARAMS)}, got {model!r}")
+    frames = np.asarray(frames, np.float32)
+    if frames.ndim != 3 or frames.shape[0] < 2:
+        raise ValueError(f"frames must have shape (F, H, W) with F >= 2, got {frames.shape}")
+    lo, hi = np.percentile(frames[0], [0.5, 99.5])
+    if hi - lo <= 0:
+        raise EstimationError("the reference frame is uniform: no texture to track")
+    ref8 = tracking_image(frames[0], lo, hi)
+    fits, per_frame = [], []
+    for t in range(1, len(frames)):
+        src, dst = track_points(ref8, tracking_image(frames[t], lo, hi))
+        try:
+            models, inliers = fit_models(src, dst)
+        except EstimationError as exc:
+            raise EstimationError(f"frame {t}: {exc} (frames must overlap the reference and show texture)") from None
+        s, d = src[inliers], dst[inliers]
+        n = 2 * len(s)
+        bic = {}
+        for name, H in models.items():
+            rss = max(float(np.sum(transfer_residuals(H, s, d) ** 2)), 1e-12 * n)
+            bic[name] = n * np.log(rss / n) + MODEL_PARAMS[name] * np.log(n)
+        fits.append((models, s, d))
+        per_frame.append({"tracked": int(len(src)), "inliers": int(inliers.sum()), "bic": bic})
+        if progress:
+            progress(1)
+    totals = {name: sum(f["bic"][name] for f in per_frame) for name in MODEL_PARAMS}
+    chosen = model if model != "auto" else min(MODEL_PARAMS, key=lambda m: totals[m])
+    reason = ("forced by configuration" if model != "auto" else
+              "lowest total BIC: " + ", ".join(f"{m} {totals[m]:.1f}" for m in MODEL_PARAMS))
+    homographies = [np.eye(3)]
+    for (models, s, d), info in zip(fits, per_frame):
+        H = models[chosen]
+        info["rms_px"] = float(np.sqrt(np.mean(transfer_residuals(H, s, d) ** 2)))
+        homographies.append(H)
+    return MotionResult(np.array(homographies), chosen, per_frame, reason)
+
+
+def trajectory_rms(H_est: np.ndarray, H_true: np.ndarray, shape: tuple[int, int], step: int = 4) -> float:
+    """RMS distance (px) between where two homographies send the reference's pixels."""
+    h, w = shape
+    ys, xs = np.mgrid[0:h:step, 0:w:step].astype(np.float64)
+    p = np.stack([xs.ravel(), ys.ravel(), np.ones(xs.size)])
+    a, b = H_est @ p, H_true @ p
+    return float(np.sqrt(np.mean(np.sum((a[:2] / a[2] - b[:2] / b[2]) ** 2, axis=0))))

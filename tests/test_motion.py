@@ -1,0 +1,96 @@
+import numpy as np
+import pytest
+
+from gainfpn_cli.errors import EstimationError
+from gainfpn_cli.motion import (
+    estimate_global_motion,
+    positions_from_flow,
+    positions_from_homography,
+    trajectory_rms,
+)
+from gainfpn_cli.simulate import Shake, simulate_burst
+
+SHAPE = (200, 260)
+
+
+def _worst(burst, result):
+    return max(trajectory_rms(result.homographies[t], burst.homographies[t], SHAPE) for t in range(1, len(burst.frames)))
+
+
+def test_positions_follow_the_conventions():
+    H = np.array([[1.0, 0.0, 3.0], [0.0, 1.0, -2.0], [0.0, 0.0, 1.0]])
+    pos = positions_from_homography(H, (4, 5))
+    assert pos.shape == (4, 5, 2)
+    np.testing.assert_array_equal(pos[1, 2], [2 + 3, 1 - 2])  # pixel (x=2, y=1) -> (5, -1)
+    flow = np.zeros((4, 5, 2))
+    flow[..., 0], flow[..., 1] = 3.0, -2.0
+    np.testing.assert_array_equal(positions_from_flow(flow), pos)
+    with pytest.raises(ValueError, match=r"flow_xy must have shape \(H, W, 2\)"):
+        positions_from_flow(np.zeros((4, 5)))
+
+
+SHAKE4 = Shake(translation_px=2.5, rotation_deg=0.5)
+DRIFT = Shake(translation_px=1.0, rotation_deg=0.2, drift_px=25)
+KNOWN_MISS = pytest.mark.xfail(
+    strict=True,
+    reason="issue 4 open: single-pass tracking misses 0.05 px on this held-out burst "
+    "(measured worst frame 0.082 px for shake4px seed 5, 0.079 px for drift25px seed 6)",
+)
+
+
+# Seeds 5 and 6 were not used to choose TRACK_SIGMA, TRACK_QUALITY or INLIER_PX.
+@pytest.mark.parametrize(
+    "seed, shake",
+    [
+        (5, Shake()),
+        (6, Shake()),
+        pytest.param(5, SHAKE4, marks=KNOWN_MISS),
+        (6, SHAKE4),
+        (5, DRIFT),
+        pytest.param(6, DRIFT, marks=KNOWN_MISS),
+    ],
+    ids=["shake-5", "shake-6", "shake4px-5", "shake4px-6", "drift25px-5", "drift25px-6"],
+)
+def test_global_warp_is_sub_pixel_accurate_despite_fpn(seed, shake):
+    # issue 4: RMS trajectory error <= 0.05 px with 5 % gain FPN, asserted on
+    # the worst frame of the burst
+    burst = simulate_burst(shape=SHAPE, n_frames=6, seed=seed, shake=shake)
+    result = estimate_global_motion(burst.frames.astype(np.float32))
+    assert _worst(burst, result) <= 0.05
+    np.testing.assert_array_equal(result.homographies[0], np.eye(3))
+
+
+@pytest.mark.parametrize(
+    "shake, expected",
+    [
+        (Shake(translation_px=2.0, rotation_deg=0.0), "translation"),
+        (Shake(translation_px=2.0, rotation_deg=0.5), "affine"),
+        (Shake(translation_px=2.0, rotation_deg=0.2, perspective=3e-5), "homography"),
+    ],
+)
+def test_the_simplest_model_the_motion_needs_is_chosen(shake, expected):
+    burst = simulate_burst(shape=SHAPE, n_frames=6, seed=7, shake=shake)
+    result = estimate_global_motion(burst.frames.astype(np.float32))
+    assert result.model == expected, result.reason
+    assert "BIC" in result.reason
+
+
+def test_a_forced_model_is_used():
+    burst = simulate_burst(shape=SHAPE, n_frames=4, seed=7, shake=Shake(rotation_deg=0.0))
+    result = estimate_global_motion(burst.frames.astype(np.float32), model="homography")
+    assert result.model == "homography" and result.reason == "forced by configuration"
+    with pytest.raises(ValueError, match="model must be auto or one of"):
+        estimate_global_motion(burst.frames.astype(np.float32), model="flow-ish")
+
+
+def test_textureless_reference_is_an_error():
+    frames = np.full((3, 60, 80), 100.0, np.float32)
+    with pytest.raises(EstimationError, match="no texture to track"):
+        estimate_global_motion(frames)
+
+
+def test_frames_of_unrelated_scenes_are_an_error():
+    a = simulate_burst(shape=SHAPE, n_frames=1, seed=1).frames[0]
+    b = simulate_burst(shape=SHAPE, n_frames=1, seed=2).frames[0]
+    with pytest.raises(EstimationError, match=r"frame 1: .*(points|inliers)"):
+        estimate_global_motion(np.stack([a, b]).astype(np.float32))
