@@ -20,6 +20,13 @@ test: $(STAMP)  ## the unit suite (slow end-to-end cases excluded)
 test-slow: $(STAMP)  ## only the slow end-to-end cases
 	$(BIN)/python -m pytest -q -m slow
 
+demo: $(STAMP)  ## estimate a gain map from sample_data/exr_burst and score it against its truth
+	$(BIN)/gainfpn estimate sample_data/exr_burst -o demo_out --overwrite
+	@echo
+	$(BIN)/gainfpn evaluate demo_out --truth sample_data/exr_burst
+	@echo
+	@echo "Outputs in demo_out/: gain_map.exr (k and confidence), corrected/, report.json, config.used.yaml, preview.png"
+
 sample-data: $(STAMP)  ## regenerate sample_data/ (deterministic)
 	$(BIN)/gainfpn simulate sample_data/exr_burst --overwrite --size 192x128 --frames 8 --seed 1
 	$(BIN)/gainfpn simulate sample_data/dng_burst --overwrite --preset raw12 --size 128x96 --frames 8 --seed 2

@@ -129,8 +129,11 @@ class InputConfig:
 class MotionConfig:
     model: str = _key(
         "auto",
-        choice("auto", "translation", "affine", "homography", "flow"),
-        "motion model; auto picks the simplest one the burst supports",
+        choice("auto", "translation", "affine", "homography"),
+        "global motion model; auto picks the one with the lowest BIC",
+    )
+    refine_rounds: int = _key(
+        0, non_negative_int, "estimate k, correct the frames, re-estimate motion and solve again this many times"
     )
 
 
@@ -148,6 +151,9 @@ class SolverConfig:
     )
     gauge_sigma: float = _key(8.0, positive_float, "accurate method: gain structure wider than this (px) is gauged to 1")
     tile: int = _key(512, positive_int, "accurate method: tiles of this side (px) are solved in parallel")
+    robust_rounds: int = _key(
+        2, non_negative_int, "accurate method: re-solves that down-weight comparisons that do not fit"
+    )
     fpn_model: str = _key(
         "auto", choice("auto", "none", "row", "column", "column+row", "pixel"),
         "accurate method: gain FPN model; auto picks the one with the lowest AIC",
@@ -166,6 +172,9 @@ class OutputConfig:
     compression: str = _key("zip", choice(*LOSSLESS_COMPRESSIONS), "EXR compression (lossless ones only)")
     corrected: bool = _key(True, boolean, "write every corrected input frame")
     preview: bool = _key(True, boolean, "write preview.png of the gain map")
+    holdout: bool = _key(
+        True, boolean, "fit without the last frame and check k helps on it; if not, write k = 1 and warn"
+    )
 
 
 @dataclass(frozen=True)

@@ -89,6 +89,9 @@ TRACK_SIGMA = 1.5
 TRACK_QUALITY = 0.03
 #: Inlier threshold (px) of the robust homography fit.
 INLIER_PX = 0.3
+#: An estimated displacement below this (px, RMS over the frame) cannot be
+#: told from zero: it is the accuracy the motion estimate is held to.
+STILL_PX = 0.05
 
 
 def to_uint8(frame: np.ndarray, lo: float, hi: float) -> np.ndarray:
@@ -218,7 +221,13 @@ def estimate_global_motion(
     for (models, s, d), info in zip(fits, per_frame):
         H = models[chosen]
         info["rms_px"] = float(np.sqrt(np.mean(transfer_residuals(H, s, d) ** 2)))
+        info["displacement_px"] = trajectory_rms(H, np.eye(3), frames.shape[1:], step=8)
         homographies.append(H)
+    if max(f["displacement_px"] for f in per_frame) < STILL_PX:
+        raise EstimationError(
+            f"no motion: every frame is within {STILL_PX} px of the reference, so the gain cannot be "
+            "estimated (pan or shake the camera during the burst)"
+        )
     return MotionResult(np.array(homographies), chosen, per_frame, reason)
 
 

@@ -94,3 +94,9 @@ def test_frames_of_unrelated_scenes_are_an_error():
     b = simulate_burst(shape=SHAPE, n_frames=1, seed=2).frames[0]
     with pytest.raises(EstimationError, match=r"frame 1: .*(points|inliers)"):
         estimate_global_motion(np.stack([a, b]).astype(np.float32))
+
+
+def test_a_still_burst_is_reported():
+    burst = simulate_burst(shape=SHAPE, n_frames=4, seed=9, shake=Shake(translation_px=0.0, rotation_deg=0.0))
+    with pytest.raises(EstimationError, match="no motion"):
+        estimate_global_motion(burst.frames.astype(np.float32))

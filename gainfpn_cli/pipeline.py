@@ -1,0 +1,425 @@
+"""Burst + config -> gain map: the only place config sections are unpacked.
+
+``estimate`` runs motion, the solver and the FPN model on every plane of a
+burst (one for monochrome frames, R G B for RGB EXR, the four 2x2 positions
+of a CFA mosaic, whose motion is estimated once on a grey proxy and mapped
+exactly to each plane). ``write_estimate`` stages every output in a temporary
+directory and renames it into place only when all are written.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import shutil
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from . import __version__
+from .accurate import AccurateOptions, solve_accurate
+from .bayer import OFFSETS, grey_proxy, plane_to_mosaic
+from .blocks import GainResult, solve_paper
+from .config import Config, dump_config
+from .errors import EstimationError, GainFPNWarning, InputError
+from .fpnmodel import select_model
+from .io import (ATTR_CFA, ATTR_SATURATION, Frame, atomic_output, check_consistent, find_frames, read_exr_planes,
+                 read_frame, write_exr, write_text)
+from .metrics import mse, residual_fpn_percent
+from .motion import estimate_global_motion, positions_from_homography
+from .solver import SolveOptions
+from .warp import sample, valid_samples
+
+#: progress(stage, total) -> update(n): the CLI's tqdm, or nothing
+Progress = Callable[[str, int], Callable[[int], None]]
+
+
+@dataclass(frozen=True)
+class LoadedBurst:
+    paths: list[Path]
+    frames: np.ndarray  # (F, H, W, C) float32, DN after black level (and dark frame)
+    cfa: str | None
+    channels: tuple[str, ...]
+    saturation: float | None
+    reference: int
+
+
+@dataclass(frozen=True)
+class Estimate:
+    k: np.ndarray  # (H, W, C) float32
+    confidence: np.ndarray  # (H, W, C) float32
+    report: dict = field(default_factory=dict)
+    warnings: list = field(default_factory=list)
+
+
+def load_burst(inputs, cfg: Config, *, progress: Progress | None = None) -> LoadedBurst:
+    """Read the frames (and subtract the master dark frame) as one float32 stack."""
+    paths = find_frames(inputs)
+    if len(paths) < 2:
+        raise InputError(f"need at least 2 frames, got {len(paths)} ({paths[0] if paths else 'none'})")
+    if cfg.input.reference >= len(paths):
+        raise InputError(f"input.reference is {cfg.input.reference} but there are only {len(paths)} frames")
+    update = progress("read", len(paths)) if progress else None
+    frames: list[Frame] = []
+    for path in paths:
+        frames.append(read_frame(path))
+        if update:
+            update(1)
+    check_consistent([f.info for f in frames])
+    stack = np.stack([f.data for f in frames])
+    info = frames[0].info
+    if cfg.input.dark is not None:
+        dark = read_frame(cfg.input.dark)
+        if dark.data.shape != stack.shape[1:]:
+            raise InputError(f"{cfg.input.dark}: dark frame is {dark.data.shape[1]}x{dark.data.shape[0]} with "
+                             f"{dark.data.shape[2]} channel(s); the frames are {stack.shape[2]}x{stack.shape[1]} "
+                             f"with {stack.shape[3]}")
+        stack = stack - dark.data[None]
+    saturation = cfg.input.saturation if cfg.input.saturation is not None else info.saturation
+    return LoadedBurst(paths, stack, info.cfa, info.channels, saturation, cfg.input.reference)
+
+
+def _planes(burst: LoadedBurst):
+    """(name, frames (F, h, w), S) per plane: S maps plane pixels to frame pixels."""
+    if burst.cfa:
+        mosaic = burst.frames[..., 0]
+        for (dy, dx), colour in zip(OFFSETS, burst.cfa):
+            yield f"{colour}@{dy}{dx}", mosaic[:, dy::2, dx::2], plane_to_mosaic((dy, dx))
+    else:
+        for c, name in enumerate(burst.channels):
+            yield name, burst.frames[..., c], np.eye(3)
+
+
+def _motion_images(frames: np.ndarray, cfa: str | None) -> tuple[np.ndarray, np.ndarray]:
+    """Grey images motion is estimated on, and S mapping their pixels to frame pixels."""
+    if cfa:
+        return np.stack([grey_proxy(f[..., 0]) for f in frames]), plane_to_mosaic((0.5, 0.5))
+    return frames.mean(axis=3), np.eye(3)
+
+
+def _conjugate(H: np.ndarray, S: np.ndarray) -> np.ndarray:
+    """The homography ``H`` (frame pixels) expressed in the pixels that ``S`` maps to frame pixels."""
+    return np.linalg.inv(S) @ H @ S
+
+
+def estimate(burst: LoadedBurst, cfg: Config, *, progress: Progress | None = None) -> Estimate:
+    """Motion, solve and FPN model for every plane; the hold-out check; a report."""
+    timings: dict[str, float] = {}
+    warnings: list[str] = []
+    order = [burst.reference] + [i for i in range(len(burst.paths)) if i != burst.reference]
+    frames = burst.frames[order]
+    holdout = cfg.output.holdout and len(frames) >= 3
+    if cfg.output.holdout and not holdout:
+        warnings.append("only 2 frames: no frame can be held out to check the estimate")
+    fit_frames = frames[:-1] if holdout else frames
+
+    t0 = time.perf_counter()
+    motion_images, S_motion = _motion_images(frames, burst.cfa)
+    update = progress("motion", len(frames) - 1) if progress else None
+    motion = estimate_global_motion(motion_images, model=cfg.motion.model, progress=update)
+    timings["motion_s"] = time.perf_counter() - t0
+    H_frame = np.array([_conjugate(H, np.linalg.inv(S_motion)) for H in motion.homographies])
+
+    t0 = time.perf_counter()
+    k, confidence, plane_reports = _solve_planes(burst, fit_frames, H_frame[: len(fit_frames)], cfg, progress)
+    for _ in range(cfg.motion.refine_rounds):
+        corrected, _ = _motion_images(frames * k[None], burst.cfa)
+        motion = estimate_global_motion(corrected, model=motion.model)
+        H_frame = np.array([_conjugate(H, np.linalg.inv(S_motion)) for H in motion.homographies])
+        k, confidence, plane_reports = _solve_planes(burst, fit_frames, H_frame[: len(fit_frames)], cfg, progress)
+    timings["solve_s"] = time.perf_counter() - t0
+
+    holdout_report = None
+    if holdout:
+        ratio = _holdout_ratio(burst, frames, H_frame, k, cfg)
+        holdout_report = {"frame": burst.paths[order[-1]].name, "residual_ratio": ratio, "passed": ratio < 1.0}
+        if ratio >= 1.0:
+            warnings.append(f"the estimate does not reduce the brightness-constancy residual on the held-out frame "
+                            f"(ratio {ratio:.3f}); writing k = 1 (no correction)")
+            k = np.ones_like(k)
+            confidence = np.zeros_like(confidence)
+    sigma = 0.01 * np.sqrt(np.divide(1.0, confidence, out=np.full(confidence.shape, np.inf),
+                                     where=confidence > 0) - 1.0)
+    report = {
+        "version": __version__,
+        "inputs": [str(p) for p in burst.paths],
+        "reference": burst.paths[burst.reference].name,
+        "motion": {
+            "model": motion.model,
+            "reason": motion.reason,
+            "frames": [{"frame": burst.paths[order[i + 1]].name, **{k_: v for k_, v in f.items() if k_ != "bic"}}
+                       for i, f in enumerate(motion.per_frame)],
+            "refine_rounds": cfg.motion.refine_rounds,
+        },
+        "planes": plane_reports,
+        "holdout": holdout_report,
+        "predicted_residual_fpn_percent": float(100 * np.median(sigma[confidence > 0])) if (confidence > 0).any()
+        else None,
+        "estimated_fraction": float((confidence > 0).mean()),
+        "timings": timings,
+        "versions": _versions(),
+        "warnings": warnings,
+    }
+    return Estimate(k.astype(np.float32), confidence.astype(np.float32), report, warnings)
+
+
+def _solve_planes(burst, frames, H_frame, cfg, progress):
+    k = np.ones(frames.shape[1:], np.float64)
+    confidence = np.zeros(frames.shape[1:], np.float64)
+    reports = {}
+    if burst.cfa:
+        views = [(OFFSETS[i], None) for i in range(4)]
+    else:
+        views = [(None, c) for c in range(len(burst.channels))]
+    for (name, _, S), (offset, channel) in zip(_planes(burst), views):
+        plane_frames = frames[:, offset[0]::2, offset[1]::2, 0] if offset else frames[..., channel]
+        H_plane = np.array([_conjugate(H, S) for H in H_frame])
+        result, info = _solve_plane(plane_frames, H_plane, burst.saturation, cfg, progress, name)
+        if offset:
+            k[offset[0]::2, offset[1]::2, 0] = result.k
+            confidence[offset[0]::2, offset[1]::2, 0] = result.confidence
+        else:
+            k[..., channel] = result.k
+            confidence[..., channel] = result.confidence
+        reports[name] = info
+    return k, confidence, reports
+
+
+def _solve_plane(frames, H, saturation, cfg, progress, name) -> tuple[GainResult, dict]:
+    s = cfg.solver
+    if s.method == "paper":
+        positions = np.stack([positions_from_homography(h, frames.shape[1:]) for h in H[1:]])
+        options = SolveOptions(lam=s.lam, max_condition=s.max_condition, k_range=s.gain_range)
+        update = progress(f"solve {name}", 0) if progress else None
+        result = solve_paper(frames, positions, block_size=s.block_size, options=options, saturation=saturation,
+                             workers=s.workers, progress=update)
+        return result, {"method": "paper", **result.stats}
+    options = AccurateOptions(kernel=s.interpolation, anchors=s.anchors, gauge_sigma=s.gauge_sigma, tile=s.tile,
+                              robust_rounds=s.robust_rounds, gain_range=s.gain_range)
+    update = progress(f"solve {name}", 0) if progress else None
+    result = solve_accurate(frames, H, options=options, saturation=saturation, workers=s.workers, progress=update)
+    model = select_model(result.k, result.confidence, force=None if s.fpn_model == "auto" else s.fpn_model)
+    info = {"method": "accurate", **result.stats, "fpn_model": model.chosen,
+            "fpn_model_aic": model.scores, "input_fpn_percent": model.split}
+    return GainResult(model.k, result.confidence, result.stats), info
+
+
+def _holdout_ratio(burst, frames, H_frame, k, cfg) -> float:
+    """Brightness-constancy residual of the held-out frame against the reference, with k over without."""
+    num = den = 0.0
+    views = ([(OFFSETS[i], None) for i in range(4)] if burst.cfa else [(None, c) for c in range(len(burst.channels))])
+    for (_, _, S), (offset, channel) in zip(_planes(burst), views):
+        pick = (lambda a: a[..., offset[0]::2, offset[1]::2, 0]) if offset else (lambda a: a[..., channel])
+        ref, held, kp = pick(frames[0]), pick(frames[-1]), pick(k)
+        M = _conjugate(H_frame[-1], S)
+        shape = ref.shape
+        sat = np.inf if burst.saturation is None else burst.saturation
+        good_ref = (ref > 0) & (ref < sat)
+        valid = valid_samples((held > 0) & (held < sat), M, shape) & good_ref
+        with_k = kp * ref - sample(kp * held, M, shape)
+        without = ref - sample(held, M, shape)
+        num += float(np.sum(with_k[valid] ** 2))
+        den += float(np.sum(without[valid] ** 2))
+    return num / den if den > 0 else 1.0
+
+
+def _versions() -> dict:
+    import cv2
+    import OpenImageIO
+    import rawpy
+    import scipy
+
+    return {"gainfpn": __version__, "python": platform.python_version(), "numpy": np.__version__,
+            "scipy": scipy.__version__, "opencv": cv2.__version__, "openimageio": OpenImageIO.__version__,
+            "rawpy": rawpy.__version__}
+
+
+# ---------------------------------------------------------------------------
+# outputs
+
+
+def prepare_out_dir(out_dir: Path, overwrite: bool) -> None:
+    """Refuse an existing, non-empty ``out_dir`` unless ``overwrite`` (checked before any work)."""
+    if out_dir.exists() and not out_dir.is_dir():
+        raise InputError(f"{out_dir}: exists and is not a directory")
+    if out_dir.is_dir() and any(out_dir.iterdir()) and not overwrite:
+        raise InputError(f"{out_dir}: directory is not empty (pass --overwrite to replace its results)")
+    if not out_dir.parent.exists():
+        raise InputError(f"{out_dir.parent}: no such directory")
+
+
+class _Staging:
+    """A temporary sibling of ``out_dir`` that replaces it on commit and vanishes on failure."""
+
+    def __init__(self, out_dir: Path):
+        self.out_dir = out_dir
+        self.tmp = out_dir.parent / f".{out_dir.name}.tmp-{os.getpid()}"
+
+    def __enter__(self) -> Path:
+        shutil.rmtree(self.tmp, ignore_errors=True)
+        try:
+            self.tmp.mkdir()
+        except OSError as exc:
+            raise InputError(f"{self.out_dir}: cannot write here ({exc.strerror or exc})") from None
+        return self.tmp
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is not None:
+            shutil.rmtree(self.tmp, ignore_errors=True)
+            return
+        old = self.out_dir.parent / f".{self.out_dir.name}.old-{os.getpid()}"
+        if self.out_dir.exists():
+            os.replace(self.out_dir, old)
+        os.replace(self.tmp, self.out_dir)
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def _gain_planes(k: np.ndarray, confidence: np.ndarray, channels: tuple[str, ...], cfa: str | None) -> dict:
+    if cfa or len(channels) == 1:
+        return {"Y": k[..., 0], "confidence": confidence[..., 0]}
+    planes = {}
+    for c, name in enumerate(channels):
+        planes[name] = k[..., c]
+        planes[f"{name}.confidence"] = confidence[..., c]
+    return planes
+
+
+def write_estimate(result: Estimate, burst: LoadedBurst, cfg: Config, out_dir: Path, *, overwrite: bool = False,
+                   progress: Progress | None = None) -> None:
+    """gain_map.exr, corrected/*.exr, report.json, config.used.yaml and preview.png, all or nothing."""
+    prepare_out_dir(out_dir, overwrite)
+    t0 = time.perf_counter()
+    config_text = dump_config(cfg)
+    metadata = {"gainfpn:version": __version__, "gainfpn:config": config_text,
+                "gainfpn:inputs": json.dumps([str(p) for p in burst.paths]),
+                "gainfpn:motion_model": result.report["motion"]["model"]}
+    if burst.cfa:
+        metadata[ATTR_CFA] = burst.cfa
+    with _Staging(out_dir) as tmp:
+        write_exr(tmp / "gain_map.exr", _gain_planes(result.k, result.confidence, burst.channels, burst.cfa),
+                  metadata=metadata, compression=cfg.output.compression)
+        if cfg.output.corrected:
+            _write_corrected(burst, result.k, tmp / "corrected", cfg, progress)
+        if cfg.output.preview:
+            write_preview(tmp / "preview.png", result.k, result.confidence)
+        write_text(tmp / "config.used.yaml", config_text)
+        result.report["timings"]["write_s"] = time.perf_counter() - t0
+        write_text(tmp / "report.json", json.dumps(result.report, indent=1))
+
+
+def _write_corrected(burst: LoadedBurst, k: np.ndarray, folder: Path, cfg: Config, progress) -> None:
+    folder.mkdir()
+    update = progress("write", len(burst.paths)) if progress else None
+    names = ("Y",) if burst.cfa or len(burst.channels) == 1 else burst.channels
+    metadata: dict = {"gainfpn:version": __version__}
+    if burst.cfa:
+        metadata[ATTR_CFA] = burst.cfa
+    if burst.saturation is not None:
+        metadata[ATTR_SATURATION] = float(burst.saturation)
+    for path, frame in zip(burst.paths, burst.frames):
+        corrected = frame * k
+        write_exr(folder / f"{path.stem}.exr", {n: corrected[..., c] for c, n in enumerate(names)},
+                  metadata=metadata, compression=cfg.output.compression)
+        if update:
+            update(1)
+
+
+def write_preview(path: Path, k: np.ndarray, confidence: np.ndarray) -> None:
+    """The gain map (first plane, +-3 robust sigma, colour-mapped) beside a histogram of k."""
+    import cv2
+
+    plane = np.asarray(k[..., 0], np.float64)
+    est = confidence[..., 0] > 0
+    values = plane[est] if est.any() else plane.ravel()
+    sigma = max(1.4826 * float(np.median(np.abs(values - np.median(values)))), 1e-4)
+    scaled = np.clip((plane - 1.0) / (3 * sigma) * 127.5 + 127.5, 0, 255).astype(np.uint8)
+    scale = max(1, 256 // max(plane.shape))
+    image = cv2.applyColorMap(scaled, cv2.COLORMAP_VIRIDIS)
+    image[~est] = 0
+    image = cv2.resize(image, (plane.shape[1] * scale, plane.shape[0] * scale), interpolation=cv2.INTER_NEAREST)
+    hist_h, hist_w = image.shape[0], 256
+    counts, _ = np.histogram(values, bins=64, range=(1 - 4 * sigma, 1 + 4 * sigma))
+    hist = np.full((hist_h, hist_w, 3), 255, np.uint8)
+    top = max(int(counts.max()), 1)
+    for i, c in enumerate(counts):
+        bar = int((hist_h - 20) * c / top)
+        cv2.rectangle(hist, (i * 4, hist_h - 1 - bar), (i * 4 + 3, hist_h - 1), (90, 60, 20), -1)
+    cv2.putText(hist, f"k: 1 +- {100 * sigma:.2f}%", (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1)
+    with atomic_output(path) as tmp:
+        if not cv2.imwrite(str(tmp), np.hstack([image, hist])):
+            raise InputError(f"{path}: cannot write PNG")
+
+
+# ---------------------------------------------------------------------------
+# apply and evaluate
+
+
+def read_gain_map(path: Path) -> tuple[np.ndarray, dict]:
+    """k as ``(H, W, C)`` and the map's attributes."""
+    planes, attrs = read_exr_planes(path)
+    if "Y" in planes:
+        return planes["Y"][..., None], attrs
+    names = [n for n in ("R", "G", "B") if n in planes]
+    if not names:
+        raise InputError(f"{path}: not a gainfpn gain map (no Y or R G B channel)")
+    return np.stack([planes[n] for n in names], axis=-1), attrs
+
+
+def apply_gain_map(gain_map: Path, inputs, out_dir: Path, *, overwrite: bool = False,
+                   progress: Progress | None = None) -> int:
+    """Correct other captures with a stored map; return how many were written."""
+    prepare_out_dir(out_dir, overwrite)
+    k, attrs = read_gain_map(gain_map)
+    paths = find_frames(inputs)
+    update = progress("apply", len(paths)) if progress else None
+    with _Staging(out_dir) as tmp:
+        for path in paths:
+            frame = read_frame(path)
+            if frame.data.shape != k.shape:
+                raise InputError(f"{path}: frame is {frame.data.shape[1]}x{frame.data.shape[0]} with "
+                                 f"{frame.data.shape[2]} channel(s); the gain map is {k.shape[1]}x{k.shape[0]} with "
+                                 f"{k.shape[2]}")
+            if (frame.info.cfa or None) != (attrs.get(ATTR_CFA) or None):
+                raise InputError(f"{path}: CFA layout {frame.info.cfa} does not match the gain map's "
+                                 f"{attrs.get(ATTR_CFA)}")
+            names = ("Y",) if k.shape[2] == 1 else frame.info.channels
+            corrected = frame.data * k
+            metadata = {ATTR_CFA: frame.info.cfa} if frame.info.cfa else {}
+            write_exr(tmp / f"{path.stem}.exr", {n: corrected[..., c] for c, n in enumerate(names)},
+                      metadata=metadata)
+            if update:
+                update(1)
+    return len(paths)
+
+
+def evaluate(out_dir: Path, sim_dir: Path) -> dict:
+    """Residual gain FPN and the paper's MSE before/after, against a simulation's truth."""
+    from .truth import load_truth
+
+    k, _ = read_gain_map(out_dir / "gain_map.exr")
+    planes, _ = read_exr_planes(out_dir / "gain_map.exr")
+    confidence = planes.get("confidence", np.ones(k.shape[:2], np.float32))
+    truth = load_truth(sim_dir)
+    frame0 = read_frame(find_frames([sim_dir])[0]).data[..., 0]
+    if truth.gain.shape != k.shape[:2]:
+        raise InputError(f"{sim_dir}: truth is {truth.gain.shape[1]}x{truth.gain.shape[0]}, the gain map "
+                         f"{k.shape[1]}x{k.shape[0]}")
+    est = confidence > 0
+    if not est.any():
+        raise EstimationError(f"{out_dir}: the gain map has no estimated pixel")
+    kk = k[..., 0]
+    return {
+        "estimated_fraction": float(est.mean()),
+        "input_fpn_percent": residual_fpn_percent(np.ones_like(kk), truth.gain, est),
+        "residual_fpn_percent": residual_fpn_percent(kk, truth.gain, est),
+        "mse_before": mse(frame0, truth.ideal, est),
+        "mse_after": mse(kk * frame0, truth.ideal, est),
+        "mse_floor": mse(frame0 / truth.gain, truth.ideal, est),
+    }
+
+
+__all__ = ["GainFPNWarning", "load_burst", "estimate", "write_estimate", "apply_gain_map", "evaluate"]
