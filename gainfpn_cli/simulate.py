@@ -211,6 +211,7 @@ def simulate_burst(
     exposure: float = 0.75,
     scene: np.ndarray | None = None,
     supersample: int = 4,
+    optics_sigma_px: float = 0.0,
     seed: int = 0,
 ) -> Burst:
     """Simulate a hand-held burst with known gain, motion and ideal frames.
@@ -226,6 +227,9 @@ def simulate_burst(
         resized to cover the burst. Default: :func:`procedural_scene`.
     supersample : int
         Sub-samples per pixel side for area integration.
+    optics_sigma_px : float
+        Sigma (px) of a Gaussian lens point-spread function applied to the
+        scene before the pixels integrate it; 0 is a perfect lens.
     """
     h, w = shape
     if h < 2 or w < 2 or n_frames < 1:
@@ -242,6 +246,10 @@ def simulate_burst(
         raster = procedural_scene(raster_shape, rng_scene, colour=colour)
     else:
         raster = _fit_scene(np.asarray(scene, np.float32), raster_shape, colour=colour)
+    if optics_sigma_px > 0:
+        import cv2
+
+        raster = cv2.GaussianBlur(raster, (0, 0), optics_sigma_px * scale, borderType=cv2.BORDER_REFLECT)
     gain = gain_pattern(shape, sensor, rng_gain)
     frames = np.empty((n_frames, h, w), np.uint16)
     ideal = np.empty((n_frames, h, w), np.float32)

@@ -125,3 +125,13 @@ def test_user_scene_is_used(rng):
                            sensor=with_overrides(PAPER, fpn_pixel=0.0), seed=1)
     left, right = burst.ideal[0][:, :8].mean(), burst.ideal[0][:, -8:].mean()
     assert left < 1 and right > 100
+
+
+def test_lens_blur_band_limits_the_scene_and_is_off_by_default():
+    sharp = simulate_burst(shape=(48, 64), n_frames=1, seed=3)
+    default = simulate_burst(shape=(48, 64), n_frames=1, seed=3, optics_sigma_px=0.0)
+    np.testing.assert_array_equal(sharp.frames, default.frames)
+    blurred = simulate_burst(shape=(48, 64), n_frames=1, seed=3, optics_sigma_px=1.0)
+    energy = lambda img: np.mean(np.diff(img.astype(np.float64), axis=1) ** 2)  # noqa: E731
+    assert energy(blurred.ideal[0]) < 0.7 * energy(sharp.ideal[0])
+    assert blurred.ideal[0].mean() == pytest.approx(sharp.ideal[0].mean(), rel=0.02)  # light is kept
