@@ -159,44 +159,52 @@ def _pick_channels(names: Sequence[str]) -> list[int]:
     return []
 
 
-def read_exr(path: Path) -> Frame:
-    """Read a single-channel (``Y``, or any one channel) or RGB EXR as float32."""
+def _read_oiio(path: Path, *, what: str, require_exr: bool) -> tuple[np.ndarray, object]:
+    """Every channel of an image as float32 ``(H, W, C)`` and a copy of its spec.
+
+    OpenImageIO never raises: each ``None`` / ``False`` is turned into an
+    :class:`InputError` naming the file.
+    """
     import OpenImageIO as oiio
 
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
-        raise InputError(f"{path}: not a readable EXR file ({_oiio_error(oiio.geterror())})")
+        raise InputError(f"{path}: not a readable {what} ({_oiio_error(oiio.geterror())})")
     try:
-        if inp.format_name() != "openexr":
+        if require_exr and inp.format_name() != "openexr":
             raise InputError(f"{path}: not an OpenEXR file (it reads as {inp.format_name()})")
-        spec = inp.spec()
-        names = list(spec.channelnames)
-        picked = _pick_channels(names)
-        if not picked:
-            raise InputError(f"{path}: no usable channel (want Y, or R G B, or a single channel; has {', '.join(names)})")
+        spec = oiio.ImageSpec(inp.spec())
         pixels = inp.read_image(0, 0, 0, spec.nchannels, "float")
         if pixels is None:
             raise InputError(f"{path}: cannot read pixels, file damaged or truncated ({_oiio_error(inp.geterror())})")
-        pixels = np.asarray(pixels, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
-        data = np.ascontiguousarray(pixels[:, :, picked])
-        cfa = spec.get_string_attribute(ATTR_CFA) or None
-        saturation = spec.getattribute(ATTR_SATURATION)
-        info = FrameInfo(
-            path=path,
-            kind="exr",
-            shape=(spec.height, spec.width),
-            channels=tuple(names[i] for i in picked),
-            cfa=cfa,
-            saturation=None if saturation is None else float(saturation),
-            source_type=str(spec.format),
-        )
     finally:
         inp.close()
+    return np.asarray(pixels, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels), spec
+
+
+def read_exr(path: Path) -> Frame:
+    """Read a single-channel (``Y``, or any one channel) or RGB EXR as float32."""
+    pixels, spec = _read_oiio(path, what="EXR file", require_exr=True)
+    names = list(spec.channelnames)
+    picked = _pick_channels(names)
+    if not picked:
+        raise InputError(f"{path}: no usable channel (want Y, or R G B, or a single channel; has {', '.join(names)})")
+    cfa = spec.get_string_attribute(ATTR_CFA) or None
+    saturation = spec.getattribute(ATTR_SATURATION)
+    info = FrameInfo(
+        path=path,
+        kind="exr",
+        shape=(spec.height, spec.width),
+        channels=tuple(names[i] for i in picked),
+        cfa=cfa,
+        saturation=None if saturation is None else float(saturation),
+        source_type=str(spec.format),
+    )
     if info.cfa is not None:
         _check_cfa(info.cfa, path)
         if len(picked) != 1:
             raise InputError(f"{path}: a CFA mosaic ({info.cfa}) must have one channel, has {len(picked)}")
-    return Frame(data, info)
+    return Frame(np.ascontiguousarray(pixels[:, :, picked]), info)
 
 
 def _oiio_error(message: str) -> str:
@@ -288,25 +296,13 @@ def _fmt(value) -> str:
 
 
 def read_exr_planes(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], dict[str, str]]:
-    """Every channel of an EXR by name (float32 ``(H, W)``) and its string attributes."""
-    import OpenImageIO as oiio
-
+    """Every channel of an EXR by name (float32 ``(H, W)``) and its gainfpn attributes."""
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: no such file")
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        raise InputError(f"{path}: not a readable EXR file ({_oiio_error(oiio.geterror())})")
-    try:
-        spec = inp.spec()
-        pixels = inp.read_image(0, 0, 0, spec.nchannels, "float")
-        if pixels is None:
-            raise InputError(f"{path}: cannot read pixels, file damaged or truncated ({_oiio_error(inp.geterror())})")
-        pixels = np.asarray(pixels, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
-        planes = {name: pixels[:, :, i].copy() for i, name in enumerate(spec.channelnames)}
-        attrs = {a.name: str(a.value) for a in spec.extra_attribs if a.name.startswith("gainfpn:")}
-    finally:
-        inp.close()
+    pixels, spec = _read_oiio(path, what="EXR file", require_exr=True)
+    planes = {name: pixels[:, :, i].copy() for i, name in enumerate(spec.channelnames)}
+    attrs = {a.name: str(a.value) for a in spec.extra_attribs if a.name.startswith("gainfpn:")}
     return planes, attrs
 
 
@@ -462,18 +458,8 @@ def read_scene(path: str | os.PathLike) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: no such file")
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        raise InputError(f"{path}: not a readable image ({_oiio_error(oiio.geterror())})")
-    try:
-        spec = inp.spec()
-        pixels = inp.read_image(0, 0, 0, spec.nchannels, "float")
-        if pixels is None:
-            raise InputError(f"{path}: cannot read pixels ({_oiio_error(inp.geterror())})")
-        is_float = spec.format.basetype in (oiio.FLOAT, oiio.HALF, oiio.DOUBLE)
-    finally:
-        inp.close()
-    image = np.asarray(pixels, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
+    image, spec = _read_oiio(path, what="image", require_exr=False)
+    is_float = spec.format.basetype in (oiio.FLOAT, oiio.HALF, oiio.DOUBLE)
     _check_finite(image, path)
     image = np.clip(image, 0.0, 1.0)
     if not is_float:
