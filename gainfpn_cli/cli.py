@@ -6,7 +6,6 @@ User errors (:class:`GainFPNError`) exit 1 with one line; usage errors exit 2
 
 from __future__ import annotations
 
-import shutil
 from pathlib import Path
 
 import click
@@ -44,19 +43,6 @@ def _parse_size(ctx, param, value: str) -> tuple[int, int]:
     return h, w
 
 
-def _prepare_out_dir(out_dir: Path, overwrite: bool, owned: tuple[str, ...]) -> None:
-    """Refuse a non-empty ``out_dir`` unless ``overwrite``; then clear what we own."""
-    if out_dir.exists() and not out_dir.is_dir():
-        raise click.ClickException(f"{out_dir}: exists and is not a directory")
-    if out_dir.is_dir() and any(out_dir.iterdir()):
-        if not overwrite:
-            raise click.ClickException(f"{out_dir}: directory is not empty (pass --overwrite to replace its results)")
-        for pattern in owned:
-            for old in out_dir.glob(pattern):
-                shutil.rmtree(old) if old.is_dir() else old.unlink()
-    out_dir.mkdir(parents=True, exist_ok=True)
-
-
 @main.command()
 @click.argument("out_dir", type=click.Path(file_okay=False, path_type=Path))
 @click.option("--preset", type=click.Choice(["paper", "raw12"]), default="paper", show_default=True,
@@ -86,9 +72,8 @@ def simulate(out_dir, preset, n_frames, size, fmt, seed, scene, fpn_pixel, fpn_c
     """Write a synthetic burst with known gains and motion into OUT_DIR."""
     import dataclasses
 
-    from .io import read_scene
-    from .simulate import PRESETS, Shake, simulate_burst, with_overrides
-    from .truth import check_format, save_burst
+    from .pipeline import simulate_to
+    from .simulate import PRESETS, Shake, with_overrides
 
     sensor = with_overrides(PRESETS[preset], fpn_pixel=fpn_pixel, fpn_column=fpn_column, fpn_row=fpn_row,
                             read_noise_e=read_noise, adc_bits=bits, black_level=black)
@@ -98,15 +83,12 @@ def simulate(out_dir, preset, n_frames, size, fmt, seed, scene, fpn_pixel, fpn_c
         raise click.BadParameter(f"black level {sensor.black_level} leaves no range below {sensor.white_level}",
                                  param_hint="--black")
     fmt = fmt or ("dng" if sensor.cfa else "exr")
-    check_format(sensor, fmt)
     motion = Shake(translation_px=shake, rotation_deg=rotation, drift_px=drift)
-    _prepare_out_dir(out_dir, overwrite, ("frame_*.exr", "frame_*.dng", "truth"))
-    burst = simulate_burst(shape=size, n_frames=n_frames, sensor=sensor, shake=motion, exposure=exposure,
-                           scene=None if scene is None else read_scene(scene), seed=seed)
     parameters = {"seed": seed, "shape": list(size), "n_frames": n_frames, "exposure": exposure,
                   "scene": str(scene) if scene else "procedural", "format": fmt,
                   "sensor": dataclasses.asdict(sensor), "shake": dataclasses.asdict(motion)}
-    paths = save_burst(burst, out_dir, fmt=fmt, parameters=parameters)
+    paths = simulate_to(out_dir, fmt=fmt, overwrite=overwrite, scene_path=scene, parameters=parameters, shape=size,
+                        n_frames=n_frames, sensor=sensor, shake=motion, exposure=exposure, seed=seed)
     click.echo(f"wrote {len(paths)} {fmt.upper()} frames ({size[1]}x{size[0]}) and truth/ to {out_dir}")
 
 
@@ -160,12 +142,13 @@ def estimate(inputs, out_dir, config_path, preset, method, workers, block_size, 
     """
     from .config import load_config
     from .pipeline import estimate as run_estimate
-    from .pipeline import load_burst, prepare_out_dir, write_estimate
+    from .io import check_out_dir
+    from .pipeline import load_burst, write_estimate
 
     cfg = load_config(config_path, preset=preset, overrides={
         "solver.method": method, "solver.workers": workers, "solver.block_size": block_size, "solver.lam": lam,
         "input.reference": reference, "input.dark": dark})
-    prepare_out_dir(out_dir, overwrite)
+    check_out_dir(out_dir, overwrite)
     progress = _tqdm_progress(quiet)
     try:
         burst = load_burst(inputs, cfg, progress=progress)

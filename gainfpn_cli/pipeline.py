@@ -10,9 +10,7 @@ directory and renames it into place only when all are written.
 from __future__ import annotations
 
 import json
-import os
 import platform
-import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,10 +23,10 @@ from .accurate import AccurateOptions, solve_accurate
 from .bayer import OFFSETS, grey_proxy, plane_to_mosaic
 from .blocks import GainResult, solve_paper
 from .config import Config, dump_config
-from .errors import EstimationError, GainFPNWarning, InputError
+from .errors import EstimationError, InputError
 from .fpnmodel import select_model
-from .io import (ATTR_CFA, ATTR_SATURATION, Frame, atomic_output, check_consistent, find_frames, read_exr_planes,
-                 read_frame, write_exr, write_text)
+from .io import (ATTR_CFA, ATTR_SATURATION, Frame, atomic_output, check_consistent, check_out_dir, find_frames,
+                 read_exr_planes, read_frame, staged_directory, write_exr, write_text)
 from .metrics import mse, residual_fpn_percent
 from .motion import estimate_global_motion, positions_from_homography
 from .solver import SolveOptions
@@ -84,14 +82,14 @@ def load_burst(inputs, cfg: Config, *, progress: Progress | None = None) -> Load
 
 
 def _planes(burst: LoadedBurst):
-    """(name, frames (F, h, w), S) per plane: S maps plane pixels to frame pixels."""
+    """(name, pick, S) per plane: ``pick`` views the plane in an ``(..., H, W, C)``
+    array; ``S`` maps plane pixels to frame pixels."""
     if burst.cfa:
-        mosaic = burst.frames[..., 0]
         for (dy, dx), colour in zip(OFFSETS, burst.cfa):
-            yield f"{colour}@{dy}{dx}", mosaic[:, dy::2, dx::2], plane_to_mosaic((dy, dx))
+            yield f"{colour}@{dy}{dx}", (lambda a, dy=dy, dx=dx: a[..., dy::2, dx::2, 0]), plane_to_mosaic((dy, dx))
     else:
         for c, name in enumerate(burst.channels):
-            yield name, burst.frames[..., c], np.eye(3)
+            yield name, (lambda a, c=c: a[..., c]), np.eye(3)
 
 
 def _motion_images(frames: np.ndarray, cfa: str | None) -> tuple[np.ndarray, np.ndarray]:
@@ -171,20 +169,11 @@ def _solve_planes(burst, frames, H_frame, cfg, progress):
     k = np.ones(frames.shape[1:], np.float64)
     confidence = np.zeros(frames.shape[1:], np.float64)
     reports = {}
-    if burst.cfa:
-        views = [(OFFSETS[i], None) for i in range(4)]
-    else:
-        views = [(None, c) for c in range(len(burst.channels))]
-    for (name, _, S), (offset, channel) in zip(_planes(burst), views):
-        plane_frames = frames[:, offset[0]::2, offset[1]::2, 0] if offset else frames[..., channel]
+    for name, pick, S in _planes(burst):
         H_plane = np.array([_conjugate(H, S) for H in H_frame])
-        result, info = _solve_plane(plane_frames, H_plane, burst.saturation, cfg, progress, name)
-        if offset:
-            k[offset[0]::2, offset[1]::2, 0] = result.k
-            confidence[offset[0]::2, offset[1]::2, 0] = result.confidence
-        else:
-            k[..., channel] = result.k
-            confidence[..., channel] = result.confidence
+        result, info = _solve_plane(pick(frames), H_plane, burst.saturation, cfg, progress, name)
+        pick(k)[...] = result.k
+        pick(confidence)[...] = result.confidence
         reports[name] = info
     return k, confidence, reports
 
@@ -211,15 +200,12 @@ def _solve_plane(frames, H, saturation, cfg, progress, name) -> tuple[GainResult
 def _holdout_ratio(burst, frames, H_frame, k, cfg) -> float:
     """Brightness-constancy residual of the held-out frame against the reference, with k over without."""
     num = den = 0.0
-    views = ([(OFFSETS[i], None) for i in range(4)] if burst.cfa else [(None, c) for c in range(len(burst.channels))])
-    for (_, _, S), (offset, channel) in zip(_planes(burst), views):
-        pick = (lambda a: a[..., offset[0]::2, offset[1]::2, 0]) if offset else (lambda a: a[..., channel])
+    sat = np.inf if burst.saturation is None else burst.saturation
+    for _, pick, S in _planes(burst):
         ref, held, kp = pick(frames[0]), pick(frames[-1]), pick(k)
         M = _conjugate(H_frame[-1], S)
         shape = ref.shape
-        sat = np.inf if burst.saturation is None else burst.saturation
-        good_ref = (ref > 0) & (ref < sat)
-        valid = valid_samples((held > 0) & (held < sat), M, shape) & good_ref
+        valid = valid_samples((held > 0) & (held < sat), M, shape) & (ref > 0) & (ref < sat)
         with_k = kp * ref - sample(kp * held, M, shape)
         without = ref - sample(held, M, shape)
         num += float(np.sum(with_k[valid] ** 2))
@@ -242,42 +228,6 @@ def _versions() -> dict:
 # outputs
 
 
-def prepare_out_dir(out_dir: Path, overwrite: bool) -> None:
-    """Refuse an existing, non-empty ``out_dir`` unless ``overwrite`` (checked before any work)."""
-    if out_dir.exists() and not out_dir.is_dir():
-        raise InputError(f"{out_dir}: exists and is not a directory")
-    if out_dir.is_dir() and any(out_dir.iterdir()) and not overwrite:
-        raise InputError(f"{out_dir}: directory is not empty (pass --overwrite to replace its results)")
-    if not out_dir.parent.exists():
-        raise InputError(f"{out_dir.parent}: no such directory")
-
-
-class _Staging:
-    """A temporary sibling of ``out_dir`` that replaces it on commit and vanishes on failure."""
-
-    def __init__(self, out_dir: Path):
-        self.out_dir = out_dir
-        self.tmp = out_dir.parent / f".{out_dir.name}.tmp-{os.getpid()}"
-
-    def __enter__(self) -> Path:
-        shutil.rmtree(self.tmp, ignore_errors=True)
-        try:
-            self.tmp.mkdir()
-        except OSError as exc:
-            raise InputError(f"{self.out_dir}: cannot write here ({exc.strerror or exc})") from None
-        return self.tmp
-
-    def __exit__(self, exc_type, exc, tb) -> None:
-        if exc_type is not None:
-            shutil.rmtree(self.tmp, ignore_errors=True)
-            return
-        old = self.out_dir.parent / f".{self.out_dir.name}.old-{os.getpid()}"
-        if self.out_dir.exists():
-            os.replace(self.out_dir, old)
-        os.replace(self.tmp, self.out_dir)
-        shutil.rmtree(old, ignore_errors=True)
-
-
 def _gain_planes(k: np.ndarray, confidence: np.ndarray, channels: tuple[str, ...], cfa: str | None) -> dict:
     if cfa or len(channels) == 1:
         return {"Y": k[..., 0], "confidence": confidence[..., 0]}
@@ -291,7 +241,7 @@ def _gain_planes(k: np.ndarray, confidence: np.ndarray, channels: tuple[str, ...
 def write_estimate(result: Estimate, burst: LoadedBurst, cfg: Config, out_dir: Path, *, overwrite: bool = False,
                    progress: Progress | None = None) -> None:
     """gain_map.exr, corrected/*.exr, report.json, config.used.yaml and preview.png, all or nothing."""
-    prepare_out_dir(out_dir, overwrite)
+    check_out_dir(out_dir, overwrite)
     t0 = time.perf_counter()
     config_text = dump_config(cfg)
     metadata = {"gainfpn:version": __version__, "gainfpn:config": config_text,
@@ -299,7 +249,7 @@ def write_estimate(result: Estimate, burst: LoadedBurst, cfg: Config, out_dir: P
                 "gainfpn:motion_model": result.report["motion"]["model"]}
     if burst.cfa:
         metadata[ATTR_CFA] = burst.cfa
-    with _Staging(out_dir) as tmp:
+    with staged_directory(out_dir) as tmp:
         write_exr(tmp / "gain_map.exr", _gain_planes(result.k, result.confidence, burst.channels, burst.cfa),
                   metadata=metadata, compression=cfg.output.compression)
         if cfg.output.corrected:
@@ -372,11 +322,11 @@ def read_gain_map(path: Path) -> tuple[np.ndarray, dict]:
 def apply_gain_map(gain_map: Path, inputs, out_dir: Path, *, overwrite: bool = False,
                    progress: Progress | None = None) -> int:
     """Correct other captures with a stored map; return how many were written."""
-    prepare_out_dir(out_dir, overwrite)
+    check_out_dir(out_dir, overwrite)
     k, attrs = read_gain_map(gain_map)
     paths = find_frames(inputs)
     update = progress("apply", len(paths)) if progress else None
-    with _Staging(out_dir) as tmp:
+    with staged_directory(out_dir) as tmp:
         for path in paths:
             frame = read_frame(path)
             if frame.data.shape != k.shape:
@@ -422,4 +372,17 @@ def evaluate(out_dir: Path, sim_dir: Path) -> dict:
     }
 
 
-__all__ = ["GainFPNWarning", "load_burst", "estimate", "write_estimate", "apply_gain_map", "evaluate"]
+def simulate_to(out_dir: Path, *, fmt: str, overwrite: bool = False, scene_path: Path | None = None,
+                parameters: dict | None = None, **burst_options) -> list[Path]:
+    """Simulate a burst (see :func:`simulate.simulate_burst`) and save it, all or nothing."""
+    from .io import read_scene
+    from .simulate import simulate_burst
+    from .truth import check_format, save_burst
+
+    check_format(burst_options["sensor"], fmt)
+    check_out_dir(out_dir, overwrite)
+    scene = None if scene_path is None else read_scene(scene_path)
+    burst = simulate_burst(scene=scene, **burst_options)
+    with staged_directory(out_dir) as tmp:
+        paths = save_burst(burst, tmp, fmt=fmt, parameters=parameters)
+    return [out_dir / p.relative_to(tmp) for p in paths]

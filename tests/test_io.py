@@ -224,3 +224,19 @@ def test_read_scene_linearises_8bit(tmp_path):
     scene = io.read_scene(tmp_path / "s.png")
     assert scene.shape == (30, 40)
     np.testing.assert_allclose(scene, (128 / 255) ** 2.2, rtol=1e-5)
+
+
+def test_staged_directory_is_all_or_nothing(tmp_path):
+    out = tmp_path / "out"
+    with io.staged_directory(out) as tmp:
+        (tmp / "a.txt").write_text("first")
+    assert (out / "a.txt").read_text() == "first"
+    with pytest.raises(KeyboardInterrupt):
+        with io.staged_directory(out) as tmp:
+            (tmp / "b.txt").write_text("half")
+            raise KeyboardInterrupt
+    assert sorted(p.name for p in out.iterdir()) == ["a.txt"]  # the earlier results are intact
+    with io.staged_directory(out) as tmp:
+        (tmp / "c.txt").write_text("second")
+    assert sorted(p.name for p in out.iterdir()) == ["c.txt"]  # replaced, never mixed
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # no staging left
