@@ -226,7 +226,7 @@ def read_raw(path: Path) -> Frame:
     import rawpy
 
     try:
-        with rawpy.imread(str(path)) as raw:
+        with _captured_stderr() as said, rawpy.imread(str(path)) as raw:
             mosaic = raw.raw_image_visible.copy()
             colors = raw.raw_colors_visible.copy()
             pattern = None if raw.raw_pattern is None else np.array(raw.raw_pattern)
@@ -234,7 +234,8 @@ def read_raw(path: Path) -> Frame:
             black_per_color = np.asarray(raw.black_level_per_channel, dtype=np.float32)
             white = float(raw.white_level)
     except rawpy.LibRawError as exc:
-        raise InputError(f"{path}: not a RAW file LibRaw can read ({_libraw_reason(exc)})") from None
+        detail = f"; LibRaw: {said[0]}" if said and said[0] else ""
+        raise InputError(f"{path}: not a RAW file LibRaw can read ({_libraw_reason(exc)}{detail})") from None
     if mosaic.ndim != 2:
         raise InputError(f"{path}: RAW data is not a single-plane mosaic (shape {mosaic.shape})")
     if pattern is None or pattern.shape != (2, 2):
@@ -255,6 +256,27 @@ def read_raw(path: Path) -> Frame:
         source_type=str(mosaic.dtype),
     )
     return Frame(data[:, :, None], info)
+
+
+@contextlib.contextmanager
+def _captured_stderr() -> Iterator[list[str]]:
+    """Capture what C code writes to file descriptor 2 (LibRaw prints there).
+
+    Yields a list that holds the captured text, last line only, once the
+    block ends, so a user sees one error line instead of LibRaw's own.
+    """
+    said: list[str] = []
+    with tempfile.TemporaryFile(mode="w+b") as sink:
+        saved = os.dup(2)
+        os.dup2(sink.fileno(), 2)
+        try:
+            yield said
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            sink.seek(0)
+            text = sink.read().decode("utf-8", "replace").strip()
+            said.append(text.splitlines()[-1].split(": ", 1)[-1] if text else "")
 
 
 def _libraw_reason(exc: Exception) -> str:

@@ -133,8 +133,18 @@ def test_truncated_files(tmp_path, rng):
     _dng(tmp_path / "full.dng", rng.integers(0, 4000, (64, 64)))
     data = (tmp_path / "full.dng").read_bytes()
     (tmp_path / "cut.dng").write_bytes(data[: len(data) // 2])
-    with pytest.raises(InputError, match=r"cut\.dng: not a RAW file LibRaw can read \(.*damaged or truncated\)"):
+    with pytest.raises(InputError, match=r"cut\.dng: not a RAW file LibRaw can read \(.*damaged or truncated"):
         io.read_frame(tmp_path / "cut.dng")
+
+
+def test_libraw_messages_become_part_of_the_one_error_line(tmp_path, rng, capfd):
+    _dng(tmp_path / "full.dng", rng.integers(0, 4000, (64, 64)))
+    data = (tmp_path / "full.dng").read_bytes()
+    (tmp_path / "cut.dng").write_bytes(data[: len(data) // 2])
+    with pytest.raises(InputError) as err:
+        io.read_frame(tmp_path / "cut.dng")
+    assert capfd.readouterr().err == ""  # nothing printed behind the user's back
+    assert "LibRaw: Unexpected end of file" in str(err.value)
 
 
 def test_wrong_extension(tmp_path, rng):
