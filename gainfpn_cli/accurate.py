@@ -131,6 +131,12 @@ def solve_accurate(
         raise ValueError(f"anchors must be 'all' or 'reference', got {options.anchors!r}")
     _check_motion(homographies, frames.shape[1:])
     h, w = frames.shape[1:]
+    radius = KERNELS[options.kernel][1]
+    if min(h, w) <= 2 * radius:
+        raise EstimationError(
+            f"frames of {w}x{h} px are too small for the {options.kernel} kernel, which needs more than "
+            f"{2 * radius} px on each side (use solver.interpolation: bilinear, or solver.method: paper)"
+        )
     sat = np.inf if saturation is None else float(saturation)
     tiles = _tiles(frames, homographies, sat, options)
     results = map_ordered(_solve_tile, tiles, workers=workers, progress=progress)

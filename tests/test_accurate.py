@@ -175,3 +175,15 @@ def test_gains_outside_the_physical_range_are_not_emitted():
     assert result.stats["out_of_range_pixels"] > 0
     assert np.all(result.k[~est] == 1.0)
     assert np.all((result.k >= 0.98) & (result.k <= 1.02))  # the final mean-1 rescale moves the range a little
+
+
+@pytest.mark.parametrize("shape", [(8, 8), (5, 40)])
+def test_tiny_frames(shape):
+    # flat scene seen by 5 % FPN pixels; every frame is s * a whatever the motion
+    a = 1 + 0.05 * np.random.default_rng(0).standard_normal(shape)
+    frames = np.stack([100.0 * a] * 4).astype(np.float32)
+    H = np.stack([np.eye(3)] + [np.array([[1, 0, 0.3 * t], [0, 1, 0.2 * t], [0, 0, 1.0]]) for t in range(1, 4)])
+    with pytest.raises(EstimationError, match=r"too small for the lanczos4 kernel.*bilinear"):
+        solve_accurate(frames, H, workers=1)
+    result = solve_accurate(frames, H, workers=1, options=AccurateOptions(kernel="bilinear"))
+    assert np.all(np.isfinite(result.k)) and (result.confidence > 0).any()

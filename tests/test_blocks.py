@@ -178,3 +178,15 @@ def test_paper_mode_beats_no_correction_on_a_noisy_textured_burst():
     before = metrics.mse(frames[0], burst.ideal[0], mask)
     after = metrics.mse(result.k * frames[0], burst.ideal[0], mask)
     assert before / after > 2.0
+
+
+@pytest.mark.parametrize("shape", [(2, 2), (3, 3), (8, 8), (1, 20), (20, 1)])
+def test_tiny_frames(shape):
+    a = 1 + 0.05 * np.random.default_rng(0).standard_normal(shape)
+    frames = np.stack([100.0 * a] * 4).astype(np.float32)
+    h, w = shape
+    ys, xs = np.mgrid[0:h, 0:w].astype(float)
+    step = (0.3 if w > 1 else 0.0, 0.2 if h > 1 else 0.0)
+    pos = np.stack([np.stack([xs + step[0] * t, ys + step[1] * t], axis=-1) for t in range(1, 4)])
+    result = solve_paper(frames, pos, workers=1)
+    _check_sane(result)
