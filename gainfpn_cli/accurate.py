@@ -43,6 +43,13 @@ from .warp import KERNELS, low_pass, sample, valid_samples
 CONFIDENCE_SCALE = 0.01
 
 
+def sigma_from_confidence(confidence: np.ndarray) -> np.ndarray:
+    """Invert ``confidence = 1 / (1 + (sigma_k / CONFIDENCE_SCALE)^2)``: inf where confidence is 0."""
+    confidence = np.asarray(confidence, np.float64)
+    ratio = np.divide(1.0, confidence, out=np.full(confidence.shape, np.inf), where=confidence > 0)
+    return CONFIDENCE_SCALE * np.sqrt(ratio - 1.0)
+
+
 @dataclass(frozen=True)
 class AccurateOptions:
     """Options of the accurate solver.

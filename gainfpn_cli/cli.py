@@ -141,8 +141,8 @@ def estimate(inputs, out_dir, config_path, preset, method, workers, block_size, 
     the estimate and k = 1 is written, with a warning), 1 on a user error.
     """
     from .config import load_config
-    from .pipeline import estimate as run_estimate
     from .io import check_out_dir
+    from .pipeline import estimate as run_estimate
     from .pipeline import load_burst, write_estimate
 
     cfg = load_config(config_path, preset=preset, overrides={

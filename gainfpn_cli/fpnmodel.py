@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .accurate import sigma_from_confidence
 from .metrics import robust_spread
 
 MODELS = ("none", "row", "column", "column+row", "pixel")
@@ -80,15 +81,14 @@ def structured_parts(k: np.ndarray, weight: np.ndarray, *, rounds: int = 3) -> t
     return col, row
 
 
-def select_model(k: np.ndarray, confidence: np.ndarray, *, sigma_scale: float = 0.01,
-                 force: str | None = None) -> FPNModel:
+def select_model(k: np.ndarray, confidence: np.ndarray, *, force: str | None = None) -> FPNModel:
     """Pick the model by AIC (or ``force`` one) and report the FPN split.
 
     Parameters
     ----------
     k, confidence : ndarray, shape (H, W)
         The solver's per-pixel estimate and its confidence
-        ``1 / (1 + (sigma_k / sigma_scale)^2)``, which gives ``sigma_k`` back.
+        (:func:`accurate.sigma_from_confidence` gives ``sigma_k`` back).
     force : str, optional
         One of :data:`MODELS` instead of the AIC choice.
     """
@@ -97,9 +97,7 @@ def select_model(k: np.ndarray, confidence: np.ndarray, *, sigma_scale: float = 
     k = np.asarray(k, np.float64)
     confidence = np.asarray(confidence, np.float64)
     est = confidence > 0
-    sigma = np.full(k.shape, np.inf)
-    sigma[est] = sigma_scale * np.sqrt(1.0 / confidence[est] - 1.0)
-    sigma[est] = np.maximum(sigma[est], 1e-6)
+    sigma = np.maximum(sigma_from_confidence(confidence), 1e-6)
     weight = np.where(est, 1.0 / sigma**2, 0.0)
     col, row = structured_parts(k, weight)
     parity = np.arange(k.shape[0]) % 2

@@ -7,7 +7,11 @@ Conventions (METHOD.md section 6): arrays are ``(row, col)``; points are
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
+
 import numpy as np
+
+from .errors import EstimationError
 
 
 def positions_from_homography(H: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -44,11 +48,6 @@ def positions_from_flow(flow_xy: np.ndarray) -> np.ndarray:
 
 # ---------------------------------------------------------------------------
 # global warps from the frames
-
-
-from dataclasses import dataclass, field  # noqa: E402
-
-from .errors import EstimationError  # noqa: E402
 
 #: Parameters of each global model, simplest first.
 MODEL_PARAMS = {"translation": 2, "affine": 6, "homography": 8}

@@ -19,7 +19,7 @@ from typing import Callable
 import numpy as np
 
 from . import __version__
-from .accurate import AccurateOptions, solve_accurate
+from .accurate import AccurateOptions, sigma_from_confidence, solve_accurate
 from .bayer import OFFSETS, grey_proxy, plane_to_mosaic
 from .blocks import GainResult, solve_paper
 from .config import Config, dump_config
@@ -104,6 +104,11 @@ def _conjugate(H: np.ndarray, S: np.ndarray) -> np.ndarray:
     return np.linalg.inv(S) @ H @ S
 
 
+def _in_frame_pixels(homographies: np.ndarray, S_motion: np.ndarray) -> np.ndarray:
+    """Motion estimated on images whose pixels ``S_motion`` maps to frame pixels, in frame pixels."""
+    return np.array([_conjugate(H, np.linalg.inv(S_motion)) for H in homographies])
+
+
 def estimate(burst: LoadedBurst, cfg: Config, *, progress: Progress | None = None) -> Estimate:
     """Motion, solve and FPN model for every plane; the hold-out check; a report."""
     timings: dict[str, float] = {}
@@ -120,28 +125,27 @@ def estimate(burst: LoadedBurst, cfg: Config, *, progress: Progress | None = Non
     update = progress("motion", len(frames) - 1) if progress else None
     motion = estimate_global_motion(motion_images, model=cfg.motion.model, progress=update)
     timings["motion_s"] = time.perf_counter() - t0
-    H_frame = np.array([_conjugate(H, np.linalg.inv(S_motion)) for H in motion.homographies])
+    H_frame = _in_frame_pixels(motion.homographies, S_motion)
 
     t0 = time.perf_counter()
     k, confidence, plane_reports = _solve_planes(burst, fit_frames, H_frame[: len(fit_frames)], cfg, progress)
     for _ in range(cfg.motion.refine_rounds):
         corrected, _ = _motion_images(frames * k[None], burst.cfa)
         motion = estimate_global_motion(corrected, model=motion.model)
-        H_frame = np.array([_conjugate(H, np.linalg.inv(S_motion)) for H in motion.homographies])
+        H_frame = _in_frame_pixels(motion.homographies, S_motion)
         k, confidence, plane_reports = _solve_planes(burst, fit_frames, H_frame[: len(fit_frames)], cfg, progress)
     timings["solve_s"] = time.perf_counter() - t0
 
     holdout_report = None
     if holdout:
-        ratio = _holdout_ratio(burst, frames, H_frame, k, cfg)
+        ratio = _holdout_ratio(burst, frames, H_frame, k)
         holdout_report = {"frame": burst.paths[order[-1]].name, "residual_ratio": ratio, "passed": ratio < 1.0}
         if ratio >= 1.0:
             warnings.append(f"the estimate does not reduce the brightness-constancy residual on the held-out frame "
                             f"(ratio {ratio:.3f}); writing k = 1 (no correction)")
             k = np.ones_like(k)
             confidence = np.zeros_like(confidence)
-    sigma = 0.01 * np.sqrt(np.divide(1.0, confidence, out=np.full(confidence.shape, np.inf),
-                                     where=confidence > 0) - 1.0)
+    sigma = sigma_from_confidence(confidence)
     report = {
         "version": __version__,
         "inputs": [str(p) for p in burst.paths],
@@ -180,16 +184,15 @@ def _solve_planes(burst, frames, H_frame, cfg, progress):
 
 def _solve_plane(frames, H, saturation, cfg, progress, name) -> tuple[GainResult, dict]:
     s = cfg.solver
+    update = progress(f"solve {name}", 0) if progress else None
     if s.method == "paper":
         positions = np.stack([positions_from_homography(h, frames.shape[1:]) for h in H[1:]])
         options = SolveOptions(lam=s.lam, max_condition=s.max_condition, k_range=s.gain_range)
-        update = progress(f"solve {name}", 0) if progress else None
         result = solve_paper(frames, positions, block_size=s.block_size, options=options, saturation=saturation,
                              workers=s.workers, progress=update)
         return result, {"method": "paper", **result.stats}
     options = AccurateOptions(kernel=s.interpolation, anchors=s.anchors, gauge_sigma=s.gauge_sigma, tile=s.tile,
                               robust_rounds=s.robust_rounds, gain_range=s.gain_range)
-    update = progress(f"solve {name}", 0) if progress else None
     result = solve_accurate(frames, H, options=options, saturation=saturation, workers=s.workers, progress=update)
     model = select_model(result.k, result.confidence, force=None if s.fpn_model == "auto" else s.fpn_model)
     info = {"method": "accurate", **result.stats, "fpn_model": model.chosen,
@@ -197,7 +200,7 @@ def _solve_plane(frames, H, saturation, cfg, progress, name) -> tuple[GainResult
     return GainResult(model.k, result.confidence, result.stats), info
 
 
-def _holdout_ratio(burst, frames, H_frame, k, cfg) -> float:
+def _holdout_ratio(burst, frames, H_frame, k) -> float:
     """Brightness-constancy residual of the held-out frame against the reference, with k over without."""
     num = den = 0.0
     sat = np.inf if burst.saturation is None else burst.saturation
