@@ -159,8 +159,9 @@ def estimate(burst: LoadedBurst, cfg: Config, *, progress: Progress | None = Non
         },
         "planes": plane_reports,
         "holdout": holdout_report,
-        "predicted_residual_fpn_percent": float(100 * np.median(sigma[confidence > 0])) if (confidence > 0).any()
-        else None,
+        # only the accurate solver's confidence is a calibrated standard error
+        "predicted_residual_fpn_percent": float(100 * np.median(sigma[confidence > 0]))
+        if (confidence > 0).any() and all(p["method"] == "accurate" for p in plane_reports.values()) else None,
         "estimated_fraction": float((confidence > 0).mean()),
         "timings": timings,
         "versions": _versions(),

@@ -141,6 +141,9 @@ def test_paper_method_end_to_end(exr_burst, tmp_path):
     assert result.exit_code == 0, result.output
     report = json.loads((tmp_path / "p" / "report.json").read_text())
     assert report["planes"]["Y"]["method"] == "paper"
+    # the paper method's confidence is a status (1, 0.5, 0), not a standard error
+    assert report["predicted_residual_fpn_percent"] is None
+    assert "predicted residual" not in result.output
 
 
 def test_config_errors_exit_1(exr_burst, tmp_path):
