@@ -43,6 +43,17 @@ def _parse_size(ctx, param, value: str) -> tuple[int, int]:
     return h, w
 
 
+def _parse_scene(ctx, param, value):
+    from .simulate import SCENES
+
+    if value in SCENES:
+        return value
+    path = Path(value)
+    if not path.is_file():
+        raise click.BadParameter(f"{value!r} is neither a built-in scene ({', '.join(SCENES)}) nor an image file")
+    return path
+
+
 @main.command()
 @click.argument("out_dir", type=click.Path(file_okay=False, path_type=Path))
 @click.option("--preset", type=click.Choice(["paper", "raw12"]), default="paper", show_default=True,
@@ -52,8 +63,8 @@ def _parse_size(ctx, param, value: str) -> tuple[int, int]:
 @click.option("--format", "fmt", type=click.Choice(["exr", "dng"]), default=None,
               help="Frame files [default: exr for paper, dng for raw12].")
 @click.option("--seed", type=click.IntRange(0), default=0, show_default=True)
-@click.option("--scene", type=click.Path(exists=True, dir_okay=False, path_type=Path),
-              help="Image to use as the scene [default: procedural texture].")
+@click.option("--scene", default="procedural", show_default=True, callback=_parse_scene,
+              help="Built-in texture (procedural, dead-leaves) or an image file to use as the scene.")
 @click.option("--fpn-pixel", type=click.FloatRange(0, 0.5), help="Sigma of the per-pixel gain.")
 @click.option("--fpn-column", type=click.FloatRange(0, 0.5), help="Sigma of the per-column gain.")
 @click.option("--fpn-row", type=click.FloatRange(0, 0.5), help="Sigma of the even/odd-row gain.")
@@ -85,9 +96,9 @@ def simulate(out_dir, preset, n_frames, size, fmt, seed, scene, fpn_pixel, fpn_c
     fmt = fmt or ("dng" if sensor.cfa else "exr")
     motion = Shake(translation_px=shake, rotation_deg=rotation, drift_px=drift)
     parameters = {"seed": seed, "shape": list(size), "n_frames": n_frames, "exposure": exposure,
-                  "scene": str(scene) if scene else "procedural", "format": fmt,
+                  "scene": str(scene), "format": fmt,
                   "sensor": dataclasses.asdict(sensor), "shake": dataclasses.asdict(motion)}
-    paths = simulate_to(out_dir, fmt=fmt, overwrite=overwrite, scene_path=scene, parameters=parameters, shape=size,
+    paths = simulate_to(out_dir, fmt=fmt, overwrite=overwrite, scene=scene, parameters=parameters, shape=size,
                         n_frames=n_frames, sensor=sensor, shake=motion, exposure=exposure, seed=seed)
     click.echo(f"wrote {len(paths)} {fmt.upper()} frames ({size[1]}x{size[0]}) and truth/ to {out_dir}")
 

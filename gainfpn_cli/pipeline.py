@@ -376,16 +376,20 @@ def evaluate(out_dir: Path, sim_dir: Path) -> dict:
     }
 
 
-def simulate_to(out_dir: Path, *, fmt: str, overwrite: bool = False, scene_path: Path | None = None,
+def simulate_to(out_dir: Path, *, fmt: str, overwrite: bool = False, scene: str | Path = "procedural",
                 parameters: dict | None = None, **burst_options) -> list[Path]:
-    """Simulate a burst (see :func:`simulate.simulate_burst`) and save it, all or nothing."""
+    """Simulate a burst (see :func:`simulate.simulate_burst`) and save it, all or nothing.
+
+    ``scene`` is a built-in scene's name or the path of an image.
+    """
     from .io import read_scene
     from .simulate import simulate_burst
     from .truth import check_format, save_burst
 
     check_format(burst_options["sensor"], fmt)
     check_out_dir(out_dir, overwrite)
-    scene = None if scene_path is None else read_scene(scene_path)
+    if isinstance(scene, Path):
+        scene = read_scene(scene)
     burst = simulate_burst(scene=scene, **burst_options)
     with staged_directory(out_dir) as tmp:
         paths = save_burst(burst, tmp, fmt=fmt, parameters=parameters)

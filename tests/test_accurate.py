@@ -85,6 +85,33 @@ def test_headline_accuracy_on_the_papers_sensor():
         assert ratio >= 12 and residual <= 1.2, (seed, ratio, residual)
 
 
+def test_headline_accuracy_on_dead_leaves():
+    # the same targets on the photograph-like dead-leaves scene (sharp
+    # occluding edges at every scale, where interpolation errs most). Measured
+    # on 10 bursts of 96x128: 12.0-17.3x, 0.69-1.06 %; the median of three
+    # bursts must meet the target (their values: 17.3, 12.9, 14.4x).
+    scores = []
+    for seed in range(3):
+        burst = simulate_burst(shape=(96, 128), n_frames=8, seed=seed, scene="dead-leaves")
+        frames = burst.frames.astype(np.float32)
+        scores.append(_scores(solve_accurate(frames, burst.homographies, saturation=burst.saturation, workers=1),
+                              burst, frames))
+    ratio, residual = np.median(scores, axis=0)
+    assert ratio >= 12 and residual <= 1.2, scores
+
+
+@pytest.mark.xfail(strict=True, reason="issue 3 gap: on dead leaves, 3 % pixel + 4 % column FPN gives 6.2-12.1x "
+                   "over 10 bursts (median 8.5); seeds 3 and 9 miss 8x at 7.5x and 6.2x, with the columns' "
+                   "means off by 0.9 % and a 1.7 % high-band error")
+@pytest.mark.parametrize("seed", [3, 9])
+def test_pixel_and_column_fpn_on_dead_leaves(seed):
+    sensor = with_overrides(PRESETS["paper"], fpn_pixel=0.03, fpn_column=0.04)
+    burst = simulate_burst(shape=(96, 128), n_frames=8, seed=seed, sensor=sensor, scene="dead-leaves")
+    frames = burst.frames.astype(np.float32)
+    ratio, _ = _scores(solve_accurate(frames, burst.homographies, saturation=burst.saturation, workers=1), burst, frames)
+    assert ratio >= 8
+
+
 def test_pixel_and_column_fpn():
     # issue 3: 3 % pixel + 4 % column FPN, accurate mode >= 8x (measured 10-13x)
     sensor = with_overrides(PRESETS["paper"], fpn_pixel=0.03, fpn_column=0.04)

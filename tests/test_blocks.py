@@ -180,6 +180,23 @@ def test_paper_mode_beats_no_correction_on_a_noisy_textured_burst():
     assert before / after > 2.0
 
 
+def test_paper_mode_reproduces_the_published_ratio():
+    # METHOD.md section 4: the published form gave 2.8x on the paper's sensor.
+    # On the photograph-like dead-leaves scene, true motion, the per-burst
+    # ratio spreads 1.3-3.4x with the scene and shake (30 bursts of 96x128:
+    # median 2.0; 15 of 120x160: median 2.2; 6 of 240x320: median 2.6), so
+    # the median of five bursts is checked against the published regime
+    # (measured 2.3 here); the accurate mode gets 12-17x on the same bursts.
+    ratios = []
+    for seed in range(5):
+        burst = simulate_burst(shape=(120, 160), n_frames=8, seed=seed, scene="dead-leaves")
+        frames = burst.frames.astype(np.float32)
+        result = solve_paper(frames, _positions(burst), workers=1, saturation=burst.saturation)
+        mask = (result.confidence > 0) & metrics.interior_mask(frames.shape[1:], 6)
+        ratios.append(metrics.mse(frames[0], burst.ideal[0], mask) / metrics.mse(result.k * frames[0], burst.ideal[0], mask))
+    assert 1.6 <= np.median(ratios) <= 3.6, ratios
+
+
 @pytest.mark.parametrize("shape", [(2, 2), (3, 3), (8, 8), (1, 20), (20, 1)])
 def test_tiny_frames(shape):
     a = 1 + 0.05 * np.random.default_rng(0).standard_normal(shape)

@@ -1,3 +1,5 @@
+import json
+
 import numpy as np
 import pytest
 from click.testing import CliRunner
@@ -32,6 +34,13 @@ def test_simulate_default_burst(runner, tmp_path):
     frames = io.read_stack(io.find_frames([out]))
     assert len(frames) == 3 and frames[0].info.shape == (48, 64)
     assert (out / "truth" / "gain.exr").is_file() and (out / "truth" / "homographies.json").is_file()
+
+
+def test_simulate_dead_leaves_scene(runner, tmp_path):
+    out = tmp_path / "leaves"
+    result = runner.invoke(main, ["simulate", str(out), "--size", "64x48", "--frames", "2", "--scene", "dead-leaves"])
+    assert result.exit_code == 0, result.output
+    assert json.loads((out / "truth" / "simulation.json").read_text())["scene"] == "dead-leaves"
 
 
 def test_simulate_dng_burst_is_readable_raw(runner, tmp_path):
@@ -69,6 +78,7 @@ def test_simulate_is_deterministic(runner, tmp_path):
         (["--fpn-pixel", "-0.1"], "--fpn-pixel"),
         (["--format", "tiff"], "--format"),
         (["--bits", "8", "--black", "300"], "black level 300 leaves no range"),
+        (["--scene", "leaves"], "neither a built-in scene (procedural, dead-leaves) nor an image file"),
     ],
 )
 def test_usage_errors_exit_2(runner, tmp_path, args, message):

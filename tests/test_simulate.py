@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from gainfpn_cli import io
-from gainfpn_cli.simulate import PRESETS, Shake, procedural_scene, render, simulate_burst, with_overrides
+from gainfpn_cli.simulate import PRESETS, Shake, dead_leaves, procedural_scene, render, simulate_burst, with_overrides
 from gainfpn_cli.truth import load_truth, save_burst
 
 PAPER = PRESETS["paper"]
@@ -135,3 +135,30 @@ def test_lens_blur_band_limits_the_scene_and_is_off_by_default():
     energy = lambda img: np.mean(np.diff(img.astype(np.float64), axis=1) ** 2)  # noqa: E731
     assert energy(blurred.ideal[0]) < 0.7 * energy(sharp.ideal[0])
     assert blurred.ideal[0].mean() == pytest.approx(sharp.ideal[0].mean(), rel=0.02)  # light is kept
+
+
+def test_dead_leaves_has_natural_image_statistics():
+    # natural images (and the ISO 19567-2 chart) have power ~ f**-2 between
+    # the smallest and the largest structure; measured slopes -1.6 to -1.8
+    img = dead_leaves((512, 512), np.random.default_rng(0), r_min=2.0)
+    assert img.dtype == np.float32 and 0.05 <= img.min() and img.max() <= 0.95
+    assert np.mean(img == 0.5) < 0.01  # the background is covered
+    power = np.abs(np.fft.fft2(img - img.mean())) ** 2
+    f = np.hypot(np.fft.fftfreq(512)[:, None], np.fft.fftfreq(512)[None, :])
+    band = (f > 4 / 512) & (f < 1 / (2 * np.pi * 2.0))
+    slope = np.polyfit(np.log(f[band]), np.log(power[band]), 1)[0]
+    assert -2.3 < slope < -1.3
+    colour = dead_leaves((64, 64), np.random.default_rng(0), r_min=2.0, colour=True)
+    assert colour.shape == (64, 64, 3) and np.ptp(colour[..., 0] - colour[..., 1]) > 0.1
+
+
+def test_named_scenes():
+    smooth = simulate_burst(shape=(40, 48), n_frames=1, seed=2)
+    leaves = simulate_burst(shape=(40, 48), n_frames=1, seed=2, scene="dead-leaves")
+    energy = lambda img: np.mean(np.diff(img.astype(np.float64), axis=1) ** 2)  # noqa: E731
+    assert energy(leaves.ideal[0]) > energy(smooth.ideal[0])  # sharper
+    np.testing.assert_array_equal(leaves.gain, smooth.gain)  # only the scene changed
+    with pytest.raises(ValueError, match="dead-leaves"):
+        simulate_burst(shape=(8, 8), n_frames=1, scene="leaves")
+    with pytest.raises(ValueError, match="r_min"):
+        dead_leaves((8, 8), np.random.default_rng(0), r_min=0.0)
