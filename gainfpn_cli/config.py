@@ -130,7 +130,7 @@ class MotionConfig:
     model: str = _key(
         "auto",
         choice("auto", "translation", "affine", "homography"),
-        "global motion model; auto picks the one with the lowest BIC",
+        "global motion model; auto picks the one with the lowest GRIC (robust information criterion)",
     )
     refine_rounds: int = _key(
         0, non_negative_int, "estimate k, correct the frames, re-estimate motion and solve again this many times"

@@ -85,6 +85,9 @@ class Burst:
     homographies : ndarray of float64, shape (F, 3, 3)
         ``H_t_ref``: reference (frame 0) pixel coordinates to frame t.
     sensor : Sensor
+    moving : ndarray of bool, shape (F, H, W), optional
+        Pixels of each frame that see some of the moving object (in that
+        frame's own coordinates); None without one.
     """
 
     frames: np.ndarray
@@ -92,6 +95,7 @@ class Burst:
     ideal: np.ndarray
     homographies: np.ndarray
     sensor: Sensor
+    moving: np.ndarray | None = None
 
     @property
     def saturation(self) -> int:
@@ -256,6 +260,7 @@ def simulate_burst(
     scene: np.ndarray | str = "procedural",
     supersample: int = 4,
     optics_sigma_px: float = 0.0,
+    moving_object: float = 0.0,
     seed: int = 0,
 ) -> Burst:
     """Simulate a hand-held burst with known gain, motion and ideal frames.
@@ -274,6 +279,10 @@ def simulate_burst(
     optics_sigma_px : float
         Sigma (px) of a Gaussian lens point-spread function applied to the
         scene before the pixels integrate it; 0 is a perfect lens.
+    moving_object : float
+        Fraction of the frame covered by a textured disk that moves on its
+        own (about 2 px per frame, in a random direction, plus a jitter of
+        1 px) on top of the camera's motion; 0 for none.
     """
     h, w = shape
     if h < 2 or w < 2 or n_frames < 1:
@@ -301,9 +310,19 @@ def simulate_burst(
     gain = gain_pattern(shape, sensor, rng_gain)
     frames = np.empty((n_frames, h, w), np.uint16)
     ideal = np.empty((n_frames, h, w), np.float32)
+    obj = _moving_object(raster, moving_object, n_frames, shape, scale, margin, np.random.default_rng(rng_scene.integers(2**63)))
+    moving = None if obj is None else np.zeros((n_frames, h, w), bool)
     full_scale_dn = float(sensor.white_level - sensor.black_level)
     for t in range(n_frames):
         light = render(raster, homographies[t], shape, scale=scale, margin=margin, supersample=supersample)
+        if obj is not None:
+            texture, alpha, offsets = obj
+            H_obj = homographies[t] @ np.array([[1.0, 0, offsets[t, 0]], [0, 1.0, offsets[t, 1]], [0, 0, 1.0]])
+            cover = render(alpha, H_obj, shape, scale=scale, margin=margin, supersample=supersample)
+            seen = render(texture, H_obj, shape, scale=scale, margin=margin, supersample=supersample)
+            cover = np.clip(cover, 0.0, 1.0).reshape(cover.shape + (1,) * (light.ndim - cover.ndim))
+            light = light * (1.0 - cover) + seen
+            moving[t] = cover.reshape(shape) > 1e-3
         if colour:
             light = _mosaic(light, sensor.cfa)
         electrons = exposure * sensor.full_well_e * light
@@ -312,7 +331,32 @@ def simulate_burst(
         signal = collected + rng_noise.normal(0.0, sensor.read_noise_e, shape)
         counts = np.floor(np.clip(signal, 0.0, sensor.full_well_e) * sensor.dn_per_e + 0.5) + sensor.black_level
         frames[t] = np.clip(counts, 0, sensor.white_level)
-    return Burst(frames=frames, gain=gain, ideal=ideal, homographies=homographies, sensor=sensor)
+    return Burst(frames=frames, gain=gain, ideal=ideal, homographies=homographies, sensor=sensor, moving=moving)
+
+
+def _moving_object(raster, fraction, n_frames, shape, scale, margin, rng):
+    """``(texture * alpha, alpha, offsets)`` of a disk covering ``fraction`` of the frame, or None.
+
+    ``offsets[t]`` is the object's own displacement (reference px) in frame t.
+    """
+    import cv2
+
+    if fraction <= 0:
+        return None
+    h, w = shape
+    radius = np.sqrt(fraction * h * w / np.pi)
+    centre = rng.uniform([0.3 * w, 0.3 * h], [0.7 * w, 0.7 * h])
+    alpha = np.zeros(raster.shape[:2], np.float32)
+    fixed = 16
+    cx, cy = ((centre + margin + 0.5) * scale - 0.5) * fixed
+    cv2.circle(alpha, (int(cx), int(cy)), int(radius * scale * fixed), 1.0, -1, lineType=cv2.LINE_AA, shift=4)
+    texture = dead_leaves(raster.shape[:2], rng, r_min=DEAD_LEAVES_MIN_PX * scale, colour=raster.ndim == 3)
+    alpha_c = alpha if raster.ndim == 2 else alpha[:, :, None]
+    heading = rng.uniform(0, 2 * np.pi)
+    steps = np.arange(n_frames)[:, None] * 2.0 * np.array([np.cos(heading), np.sin(heading)])
+    offsets = steps + rng.normal(0.0, 1.0, (n_frames, 2))
+    offsets[0] = 0.0
+    return texture * alpha_c, alpha, offsets
 
 
 def _mosaic(rgb: np.ndarray, cfa: str) -> np.ndarray:

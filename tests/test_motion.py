@@ -34,7 +34,7 @@ DRIFT = Shake(translation_px=1.0, rotation_deg=0.2, drift_px=25)
 KNOWN_MISS = pytest.mark.xfail(
     strict=True,
     reason="issue 4 open: single-pass tracking misses 0.05 px on this held-out burst "
-    "(measured worst frame 0.082 px for shake4px seed 5, 0.079 px for drift25px seed 6)",
+    "(measured worst frame 0.083 px for shake4px seed 5, 0.061 px for drift25px seed 6)",
 )
 
 
@@ -60,6 +60,19 @@ def test_global_warp_is_sub_pixel_accurate_despite_fpn(seed, shake):
     np.testing.assert_array_equal(result.homographies[0], np.eye(3))
 
 
+@pytest.mark.parametrize("seed, shake, limit", [(5, Shake(), 0.05), (6, Shake(), 0.05), (7, DRIFT, 0.1)],
+                         ids=["shake-5", "shake-6", "drift25px-7"])
+def test_a_moving_object_does_not_move_the_global_warp(seed, shake, limit):
+    # issue 4: an object covering 10 % of the frame moves on its own. Worst
+    # frame measured without / with it: 0.028 / 0.035, 0.047 / 0.049 and, for
+    # the drift (where MAGSAC once preferred the object's 48 crisp corners to
+    # 96 background ones and missed by 29 px), 0.032 / 0.063 px.
+    burst = simulate_burst(shape=SHAPE, n_frames=6, seed=seed, shake=shake, moving_object=0.1)
+    assert burst.moving.mean() == pytest.approx(0.1, abs=0.02)
+    result = estimate_global_motion(burst.frames.astype(np.float32))
+    assert _worst(burst, result) <= limit
+
+
 @pytest.mark.parametrize(
     "shake, expected",
     [
@@ -72,7 +85,7 @@ def test_the_simplest_model_the_motion_needs_is_chosen(shake, expected):
     burst = simulate_burst(shape=SHAPE, n_frames=6, seed=7, shake=shake)
     result = estimate_global_motion(burst.frames.astype(np.float32))
     assert result.model == expected, result.reason
-    assert "BIC" in result.reason
+    assert "GRIC" in result.reason
 
 
 def test_a_forced_model_is_used():
