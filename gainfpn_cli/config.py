@@ -135,6 +135,9 @@ class MotionConfig:
     refine_rounds: int = _key(
         0, non_negative_int, "estimate k, correct the frames, re-estimate motion and solve again this many times"
     )
+    mask_moving: bool = _key(
+        True, boolean, "leave out of the solve the pixels that do not follow the global motion (moving objects)"
+    )
 
 
 @dataclass(frozen=True)

@@ -28,7 +28,7 @@ from .fpnmodel import select_model
 from .io import (ATTR_CFA, ATTR_SATURATION, Frame, atomic_output, check_consistent, check_out_dir, find_frames,
                  read_exr_planes, read_frame, staged_directory, write_exr, write_text)
 from .metrics import mse, residual_fpn_percent
-from .motion import estimate_global_motion, positions_from_homography
+from .motion import estimate_global_motion, moving_masks, positions_from_homography
 from .solver import SolveOptions
 from .warp import sample, valid_samples
 
@@ -124,21 +124,24 @@ def estimate(burst: LoadedBurst, cfg: Config, *, progress: Progress | None = Non
     motion_images, S_motion = _motion_images(frames, burst.cfa)
     update = progress("motion", len(frames) - 1) if progress else None
     motion = estimate_global_motion(motion_images, model=cfg.motion.model, progress=update)
-    timings["motion_s"] = time.perf_counter() - t0
     H_frame = _in_frame_pixels(motion.homographies, S_motion)
+    solve_frames, moving = _mask_moving(frames, motion_images, motion.homographies, burst.cfa, cfg)
+    timings["motion_s"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    k, confidence, plane_reports = _solve_planes(burst, fit_frames, H_frame[: len(fit_frames)], cfg, progress)
+    n_fit = len(fit_frames)
+    k, confidence, plane_reports = _solve_planes(burst, solve_frames[:n_fit], H_frame[:n_fit], cfg, progress)
     for _ in range(cfg.motion.refine_rounds):
         corrected, _ = _motion_images(frames * k[None], burst.cfa)
         motion = estimate_global_motion(corrected, model=motion.model)
         H_frame = _in_frame_pixels(motion.homographies, S_motion)
-        k, confidence, plane_reports = _solve_planes(burst, fit_frames, H_frame[: len(fit_frames)], cfg, progress)
+        solve_frames, moving = _mask_moving(frames, corrected, motion.homographies, burst.cfa, cfg)
+        k, confidence, plane_reports = _solve_planes(burst, solve_frames[:n_fit], H_frame[:n_fit], cfg, progress)
     timings["solve_s"] = time.perf_counter() - t0
 
     holdout_report = None
     if holdout:
-        ratio = _holdout_ratio(burst, frames, H_frame, k)
+        ratio = _holdout_ratio(burst, solve_frames, H_frame, k)
         holdout_report = {"frame": burst.paths[order[-1]].name, "residual_ratio": ratio, "passed": ratio < 1.0}
         if ratio >= 1.0:
             warnings.append(f"the estimate does not reduce the brightness-constancy residual on the held-out frame "
@@ -156,6 +159,8 @@ def estimate(burst: LoadedBurst, cfg: Config, *, progress: Progress | None = Non
             "frames": [{"frame": burst.paths[order[i + 1]].name, **{k_: v for k_, v in f.items() if k_ != "gric"}}
                        for i, f in enumerate(motion.per_frame)],
             "refine_rounds": cfg.motion.refine_rounds,
+            # per frame, reference first: pixels left out because they do not follow the global motion
+            "moving_percent": None if moving is None else [round(100 * float(m.mean()), 2) for m in moving],
         },
         "planes": plane_reports,
         "holdout": holdout_report,
@@ -168,6 +173,19 @@ def estimate(burst: LoadedBurst, cfg: Config, *, progress: Progress | None = Non
         "warnings": warnings,
     }
     return Estimate(k.astype(np.float32), confidence.astype(np.float32), report, warnings)
+
+
+def _mask_moving(frames, motion_images, homographies, cfa, cfg) -> tuple[np.ndarray, np.ndarray | None]:
+    """Frames with the pixels that do not follow the global motion set to 0 (which
+    every solver leaves out, as it does dark pixels), and those pixels' masks."""
+    if not cfg.motion.mask_moving:
+        return frames, None
+    masks = moving_masks(motion_images, homographies)
+    if cfa:  # grey-proxy pixel (y, x) is the CFA cell of photosites (2y.., 2x..)
+        masks = np.repeat(np.repeat(masks, 2, axis=1), 2, axis=2)
+        pad = [(0, 0), (0, frames.shape[1] - masks.shape[1]), (0, frames.shape[2] - masks.shape[2])]
+        masks = np.pad(masks, pad, mode="edge")
+    return np.where(masks[..., None], np.float32(0), frames), masks
 
 
 def _solve_planes(burst, frames, H_frame, cfg, progress):

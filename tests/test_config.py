@@ -123,6 +123,7 @@ STRATEGIES = {
     "input.dark": st.none() | st.text(min_size=1, max_size=20),
     "motion.model": st.sampled_from(["auto", "translation", "affine", "homography"]),
     "motion.refine_rounds": st.integers(0, 5),
+    "motion.mask_moving": st.booleans(),
     "solver.robust_rounds": st.integers(0, 5),
     "output.holdout": st.booleans(),
     "solver.method": st.sampled_from(["accurate", "paper"]),

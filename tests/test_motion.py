@@ -4,6 +4,7 @@ import pytest
 from gainfpn_cli.errors import EstimationError
 from gainfpn_cli.motion import (
     estimate_global_motion,
+    moving_masks,
     positions_from_flow,
     positions_from_homography,
     trajectory_rms,
@@ -113,3 +114,26 @@ def test_a_still_burst_is_reported():
     burst = simulate_burst(shape=SHAPE, n_frames=4, seed=9, shake=Shake(translation_px=0.0, rotation_deg=0.0))
     with pytest.raises(EstimationError, match="no motion"):
         estimate_global_motion(burst.frames.astype(np.float32))
+
+
+def test_moving_masks_find_the_object_and_little_else():
+    # what matters is the object's textured pixels, where a comparison across
+    # the wrong motion errs; flat parts compare equal anyway and may be missed.
+    # Measured on 160x200 bursts (seeds 3-5): textured part 99.4-100 % found,
+    # whole object 88-100 %, 2-8 % of the rest flagged (mostly background the
+    # object uncovers); on 240x320, 0-7 % flagged without an object.
+    import cv2
+
+    shape = (160, 200)
+    burst = simulate_burst(shape=shape, n_frames=5, seed=3, moving_object=0.1)
+    frames = burst.frames.astype(np.float32)
+    masks = moving_masks(frames, burst.homographies)
+    assert masks.shape == frames.shape and masks.dtype == bool
+    for mask, truth, ideal in zip(masks, burst.moving, burst.ideal):
+        gradient = np.hypot(cv2.Sobel(ideal, cv2.CV_32F, 1, 0), cv2.Sobel(ideal, cv2.CV_32F, 0, 1))
+        textured = truth & (gradient > np.median(gradient))
+        assert (mask & textured).sum() >= 0.98 * textured.sum()
+        assert (mask & truth).sum() >= 0.85 * truth.sum()
+        assert (mask & ~truth).sum() <= 0.1 * (~truth).sum()
+    still = simulate_burst(shape=shape, n_frames=5, seed=3)
+    assert moving_masks(still.frames.astype(np.float32), still.homographies).mean() <= 0.08
