@@ -4,7 +4,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-stamp
 
-.PHONY: install test test-slow demo sample-data clean
+.PHONY: install test test-slow demo bench bench-quick sample-data clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -26,6 +26,16 @@ demo: $(STAMP)  ## estimate a gain map from sample_data/exr_burst and score it a
 	$(BIN)/gainfpn evaluate demo_out --truth sample_data/exr_burst
 	@echo
 	@echo "Outputs in demo_out/: gain_map.exr (k and confidence), corrected/, report.json, config.used.yaml, preview.png"
+
+$(VENV)/.bench-stamp: $(STAMP)
+	$(BIN)/python -m pip install --quiet -e '.[test,bench]'
+	touch $@
+
+bench: $(VENV)/.bench-stamp  ## the full speed/accuracy benchmark into bench_out/ (long: see README)
+	$(BIN)/gainfpn bench -o bench_out --overwrite
+
+bench-quick: $(VENV)/.bench-stamp  ## the one-minute benchmark (CI smoke) into bench_quick/
+	$(BIN)/gainfpn bench --quick -o bench_quick --overwrite
 
 sample-data: $(STAMP)  ## regenerate sample_data/ (deterministic)
 	$(BIN)/gainfpn simulate sample_data/exr_burst --overwrite --size 192x128 --frames 8 --seed 1

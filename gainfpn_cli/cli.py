@@ -219,3 +219,36 @@ def evaluate(out_dir, sim_dir):
     click.echo(f"{'MSE frame 0 (DN^2)':24}{scores['mse_before']:>10.2f}{scores['mse_after']:>10.2f}")
     click.echo(f"MSE reduction {ratio:.1f}x (temporal-noise floor {scores['mse_floor']:.2f} DN^2), "
                f"{100 * scores['estimated_fraction']:.0f}% of pixels estimated")
+
+
+@main.command()
+@click.option("-o", "--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
+              help="Directory for results.json, results.md and the plots.")
+@click.option("--quick", is_flag=True, help="A small set of points (about a minute): the CI smoke run.")
+@click.option("--overwrite", is_flag=True, help="Replace the results in a non-empty OUT.")
+@click.option("--quiet", is_flag=True, help="No progress bar.")
+def bench(out_dir, quick, overwrite, quiet):
+    """Measure accuracy against time and memory on simulated bursts.
+
+    Presets, knob sweeps, the paper's published form, a flat-field
+    calibration and the noise floor, scaling, parallel efficiency and
+    flow-error sensitivity (see gainfpn_cli/bench.py). Plots need
+    matplotlib (pip install 'gainfpn[bench]').
+    """
+    from .bench import plan, run
+    from .io import check_out_dir, staged_directory
+
+    check_out_dir(out_dir, overwrite)
+    bar = None
+    if not quiet:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(plan(quick)), desc="bench", unit="point", leave=False, dynamic_ncols=True)
+    try:
+        with staged_directory(out_dir) as tmp:
+            run(tmp, quick=quick, progress=bar.update if bar else None)
+    finally:
+        if bar:
+            bar.close()
+    click.echo((out_dir / "results.md").read_text())
+    click.echo(f"results in {out_dir}/: results.md, results.json and plots (*.png)")

@@ -152,6 +152,10 @@ class SolverConfig:
     anchors: str = _key(
         "all", choice("all", "reference"), "accurate method: every frame anchors comparisons, or only the reference"
     )
+    partners: int = _key(
+        0, non_negative_int, "accurate method: frames each anchor is compared with, nearest first; 0 = all (slowest)"
+    )
+    rtol: float = _key(1e-3, positive_float, "accurate method: relative tolerance of the iterative solve")
     gauge_sigma: float = _key(8.0, positive_float, "accurate method: gain structure wider than this (px) is gauged to 1")
     tile: int = _key(512, positive_int, "accurate method: tiles of this side (px) are solved in parallel")
     robust_rounds: int = _key(

@@ -210,7 +210,8 @@ def _solve_plane(frames, H, saturation, cfg, progress, name) -> tuple[GainResult
         result = solve_paper(frames, positions, block_size=s.block_size, options=options, saturation=saturation,
                              workers=s.workers, progress=update)
         return result, {"method": "paper", **result.stats}
-    options = AccurateOptions(kernel=s.interpolation, anchors=s.anchors, gauge_sigma=s.gauge_sigma, tile=s.tile,
+    options = AccurateOptions(kernel=s.interpolation, anchors=s.anchors, partners=s.partners, rtol=s.rtol,
+                              gauge_sigma=s.gauge_sigma, tile=s.tile,
                               robust_rounds=s.robust_rounds, gain_range=s.gain_range)
     result = solve_accurate(frames, H, options=options, saturation=saturation, workers=s.workers, progress=update)
     model = select_model(result.k, result.confidence, force=None if s.fpn_model == "auto" else s.fpn_model)

@@ -131,6 +131,8 @@ STRATEGIES = {
     "solver.lam": st.floats(0, 1e12, allow_nan=False),
     "solver.interpolation": st.sampled_from(["bilinear", "cubic", "lanczos4"]),
     "solver.anchors": st.sampled_from(["all", "reference"]),
+    "solver.partners": st.integers(0, 64),
+    "solver.rtol": st.floats(1e-8, 1.0),
     "solver.gauge_sigma": st.floats(0.1, 1e3, allow_nan=False),
     "solver.tile": st.integers(1, 10000),
     "solver.fpn_model": st.sampled_from(["auto", "none", "row", "column", "column+row", "pixel"]),

@@ -1,0 +1,379 @@
+"""``gainfpn bench``: the speed/accuracy trade, measured on simulated bursts.
+
+Every point runs the real pipeline (read, motion, solve, write) on a burst
+with known truth, in a fresh process so that its peak memory is its own
+(the solver's worker processes included). Points that isolate the solver
+(flow-error sensitivity, parallel efficiency) call it directly with the true
+motion. Reference points in the same run: the paper's published
+configuration, a flat-field calibration from as many uniformly lit frames,
+and the temporal-noise floor (the true gains).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import multiprocessing
+import platform
+import resource
+import shutil
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+#: The sensor of every bench burst (METHOD.md section 4).
+SENSOR = "paper"
+
+
+@dataclass(frozen=True)
+class BurstSpec:
+    """A simulated burst: enough to make it again."""
+
+    shape: tuple[int, int] = (240, 320)
+    n_frames: int = 8
+    seed: int = 1
+    scene: str = "dead-leaves"
+    fpn_column: float = 0.0
+    supersample: int = 4
+
+    @property
+    def key(self) -> str:
+        h, w = self.shape
+        return f"{w}x{h}-f{self.n_frames}-s{self.seed}-{self.scene}-c{self.fpn_column:g}-ss{self.supersample}"
+
+    @property
+    def megapixels(self) -> float:
+        return self.shape[0] * self.shape[1] / 1e6
+
+
+@dataclass(frozen=True)
+class Point:
+    """One measurement: ``kind`` is pipeline, flat-field, floor, flow-error or workers."""
+
+    group: str
+    label: str
+    burst: BurstSpec
+    kind: str = "pipeline"
+    preset: str | None = None
+    overrides: dict = field(default_factory=dict)
+    flow_error_px: float = 0.0
+
+
+def plan(quick: bool) -> list[Point]:
+    """The points of a quick (CI smoke, about a minute) or full run."""
+    # dead leaves: the photograph-like scene on which the published form gives its published ratio
+    base = BurstSpec(shape=(120, 160), scene="dead-leaves") if quick else BurstSpec(shape=(480, 640), scene="dead-leaves")
+    points = [Point("reference", "temporal-noise floor (true gains)", base, kind="floor"),
+              Point("reference", "flat field, same frame count", base, kind="flat-field"),
+              Point("reference", "paper as published (5x5, bilinear)", base, preset="paper")]
+    points += [Point("preset", name, base, preset=name) for name in ("fast", "balanced", "accurate")]
+    if quick:
+        points += [Point("block_size", f"paper, {b}x{b}", base, preset="paper", overrides={"solver.block_size": b})
+                   for b in (3, 9)]
+        points += [Point("flow_error", f"{e} px", base, kind="flow-error", flow_error_px=e) for e in (0.0, 0.8)]
+        points += [Point("workers", "solver 1 vs 2 workers", base, kind="workers")]
+        return points
+    points += [Point("block_size", f"paper, {b}x{b}", base, preset="paper", overrides={"solver.block_size": b})
+               for b in (1, 3, 9, 17, 33)]
+    points += [Point("block_size", "global (accurate, one tile)", base, overrides={"solver.tile": 4096})]
+    points += [Point("lambda", f"paper, lam {lam:g}", base, preset="paper", overrides={"solver.lam": lam})
+               for lam in (1e-4, 1e-2, 1.0, 10.0)]
+    points += [Point("kernel", kernel, base, overrides={"solver.interpolation": kernel})
+               for kernel in ("bilinear", "cubic", "lanczos4")]
+    points += [Point("frames", f"{n} frames", dataclasses.replace(base, n_frames=n)) for n in (3, 5, 16)]
+    points += [Point("motion_model", model, base, overrides={"motion.model": model})
+               for model in ("translation", "affine", "homography")]
+    points += [Point("refine", "1 refinement round", base, overrides={"motion.refine_rounds": 1})]
+    points += [Point("scene", "procedural (smoother)", dataclasses.replace(base, scene="procedural"))]
+    points += [Point("scene", "3 % pixel + 4 % column", dataclasses.replace(base, fpn_column=0.04))]
+    points += [Point("flow_error", f"{e} px", base, kind="flow-error", flow_error_px=e)
+               for e in (0.0, 0.05, 0.1, 0.2, 0.4, 0.8, 1.5)]
+    points += [Point("workers", "solver 1 vs 2 workers", dataclasses.replace(base, shape=(1200, 1600)),
+                     kind="workers")]
+    for mp, shape in ((0.3, (480, 640)), (2, (1200, 1600)), (12, (3000, 4000)), (24, (4240, 5660))):
+        for preset in ("fast", "balanced"):
+            points.append(Point("scaling_pixels", f"{preset}, {mp} MP", BurstSpec(shape=shape, supersample=1),
+                                preset=preset))
+    for n in (4, 16, 32):
+        points.append(Point("scaling_frames", f"balanced, {n} frames, 2 MP",
+                            BurstSpec(shape=(1200, 1600), n_frames=n, supersample=1), preset="balanced"))
+    return points
+
+
+# ---------------------------------------------------------------------------
+# running
+
+
+def run(out_dir: Path, *, quick: bool, progress=None) -> list[dict]:
+    """Run every point of :func:`plan`; write results.json, results.md and plots into ``out_dir``."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    scratch = out_dir / "scratch"
+    started = time.perf_counter()
+    points = plan(quick)
+    results = []
+    context = multiprocessing.get_context("spawn")
+    try:
+        with ProcessPoolExecutor(1, mp_context=context, max_tasks_per_child=1) as pool:
+            for spec in dict.fromkeys(p.burst for p in points):  # each burst once, in its own process
+                pool.submit(_make_burst, spec, scratch / spec.key).result()
+                for point in (p for p in points if p.burst == spec):
+                    results.append(pool.submit(_measure, point, scratch).result())
+                    if progress:
+                        progress(1)
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+    _add_derived(results)
+    summary = {"machine": _machine(), "quick": quick, "duration_s": time.perf_counter() - started, "points": results}
+    (out_dir / "results.json").write_text(json.dumps(summary, indent=1))
+    (out_dir / "results.md").write_text(markdown(summary))
+    plot(summary, out_dir)
+    return results
+
+
+def _make_burst(spec: BurstSpec, folder: Path) -> None:
+    from .simulate import PRESETS, simulate_burst, with_overrides
+    from .truth import save_burst
+
+    sensor = with_overrides(PRESETS[SENSOR], fpn_pixel=0.03 if spec.fpn_column else None,
+                            fpn_column=spec.fpn_column or None)
+    burst = simulate_burst(shape=spec.shape, n_frames=spec.n_frames, seed=spec.seed, scene=spec.scene,
+                           sensor=sensor, supersample=spec.supersample)
+    save_burst(burst, folder, fmt="exr", parameters=dataclasses.asdict(spec))
+
+
+def _peak_rss_mb() -> float:
+    """This process's peak RSS plus its largest finished child's (the solver's workers), MB."""
+    own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    children = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    return (own + children) / 1024.0
+
+
+def _measure(point: Point, scratch: Path) -> dict:
+    from .truth import load_truth
+
+    folder = scratch / point.burst.key
+    row = {"group": point.group, "label": point.label, "kind": point.kind, "preset": point.preset,
+           "overrides": point.overrides, "burst": dataclasses.asdict(point.burst),
+           "megapixels": point.burst.megapixels}
+    truth = load_truth(folder)
+    if point.kind == "pipeline":
+        row.update(_pipeline(point, folder, scratch / "out"))
+    elif point.kind == "floor":
+        row.update(_scores(1.0 / truth.gain, folder, truth))
+    elif point.kind == "flat-field":
+        row.update(_scores(_flat_field_k(point.burst), folder, truth))
+    elif point.kind == "flow-error":
+        row.update(_flow_error(point, folder, truth), flow_error_px=point.flow_error_px)
+    elif point.kind == "workers":
+        row.update(_workers(folder))
+    row["peak_rss_mb"] = _peak_rss_mb()
+    return row
+
+
+def _pipeline(point: Point, folder: Path, out: Path) -> dict:
+    from .config import load_config
+    from .pipeline import estimate, evaluate, load_burst, write_estimate
+
+    cfg = load_config(preset=point.preset, overrides=point.overrides)
+    t0 = time.perf_counter()
+    burst = load_burst([folder], cfg)
+    read_s = time.perf_counter() - t0
+    result = estimate(burst, cfg)
+    write_estimate(result, burst, cfg, out, overwrite=True)
+    total = time.perf_counter() - t0
+    holdout = result.report["holdout"] or {}
+    if holdout.get("passed") is False:  # the tool wrote k = 1: score what a user gets, no correction
+        from .truth import load_truth
+
+        scores = _scores(np.ones(result.k.shape[:2], np.float32), folder, load_truth(folder))
+    else:
+        scores = evaluate(out, folder)
+    shutil.rmtree(out, ignore_errors=True)
+    timings = {"read_s": read_s, **result.report["timings"], "total_s": total}
+    return {**scores, "timings": timings, "motion_model": result.report["motion"]["model"],
+            "holdout_passed": holdout.get("passed")}
+
+
+def _scores(k: np.ndarray, folder: Path, truth) -> dict:
+    from .io import find_frames, read_frame
+    from .metrics import mse, residual_fpn_percent
+
+    frame0 = read_frame(find_frames([folder])[0]).data[..., 0]
+    est = np.ones(frame0.shape, bool)
+    return {"input_fpn_percent": residual_fpn_percent(np.ones_like(frame0), truth.gain, est),
+            "residual_fpn_percent": residual_fpn_percent(k, truth.gain, est),
+            "mse_before": mse(frame0, truth.ideal, est), "mse_after": mse(k * frame0, truth.ideal, est),
+            "mse_floor": mse(frame0 / truth.gain, truth.ideal, est), "estimated_fraction": 1.0}
+
+
+def _flat_field_k(spec: BurstSpec) -> np.ndarray:
+    """What a lab with a flat-field rig gets from as many frames: uniformly lit, averaged."""
+    from .simulate import PRESETS, Shake, simulate_burst, with_overrides
+
+    sensor = with_overrides(PRESETS[SENSOR], fpn_pixel=0.03 if spec.fpn_column else None,
+                            fpn_column=spec.fpn_column or None)
+    flat = simulate_burst(shape=spec.shape, n_frames=spec.n_frames, seed=spec.seed, sensor=sensor, supersample=1,
+                          scene=np.full((8, 8), 0.5, np.float32), shake=Shake(translation_px=0, rotation_deg=0))
+    mean = flat.frames.astype(np.float64).mean(axis=0) - sensor.black_level
+    return (mean.mean() / mean).astype(np.float32)
+
+
+def _frames(folder: Path) -> tuple[np.ndarray, float]:
+    from .io import find_frames, read_frame
+
+    frames = [read_frame(p) for p in find_frames([folder])]
+    return np.stack([f.data[..., 0] for f in frames]), frames[0].info.saturation
+
+
+def _flow_error(point: Point, folder: Path, truth) -> dict:
+    """The accurate solver with the true warps, each frame's shifted by ``flow_error_px`` RMS."""
+    from .accurate import solve_accurate
+
+    frames, saturation = _frames(folder)
+    rng = np.random.default_rng(7)
+    H = truth.homographies.copy()
+    for t in range(1, len(H)):
+        shift = np.eye(3)
+        shift[:2, 2] = rng.normal(0.0, point.flow_error_px / np.sqrt(2), 2)
+        H[t] = shift @ H[t]
+    t0 = time.perf_counter()
+    result = solve_accurate(frames, H, saturation=saturation, workers=2)
+    row = _scores(result.k, folder, truth)
+    row["timings"] = {"solve_s": time.perf_counter() - t0}
+    return row
+
+
+def _workers(folder: Path) -> dict:
+    from .accurate import solve_accurate
+    from .truth import load_truth
+
+    import cv2
+
+    truth = load_truth(folder)
+    frames, saturation = _frames(folder)
+    times = {}
+    threads = cv2.getNumThreads()
+    for name, workers, cv_threads in (("1 worker, 1 thread", 1, 1), ("1 worker, OpenCV threads", 1, threads),
+                                      ("2 workers", 2, threads)):
+        cv2.setNumThreads(cv_threads)  # the workers themselves always run OpenCV single-threaded
+        t0 = time.perf_counter()
+        solve_accurate(frames, truth.homographies, saturation=saturation, workers=workers)
+        times[name] = time.perf_counter() - t0
+    cv2.setNumThreads(threads)
+    return {"timings": {"solve_by_workers_s": times},
+            "parallel_speedup": times["1 worker, 1 thread"] / times["2 workers"]}
+
+
+def _add_derived(results: list[dict]) -> None:
+    for row in results:
+        if "mse_after" in row:
+            row["mse_ratio"] = row["mse_before"] / max(row["mse_after"], 1e-12)
+    scaling = [r for r in results if r["group"] == "scaling_pixels" and r.get("preset") == "balanced"]
+    if len(scaling) >= 2:
+        x = np.log([r["megapixels"] * r["burst"]["n_frames"] for r in scaling])
+        y = np.log([r["timings"]["total_s"] for r in scaling])
+        exponent = float(np.polyfit(x, y, 1)[0])
+        for r in scaling:
+            r["fitted_time_exponent"] = exponent
+
+
+def _machine() -> dict:
+    import os
+
+    return {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
+            "processor": platform.processor() or platform.machine()}
+
+
+# ---------------------------------------------------------------------------
+# reporting
+
+
+def markdown(summary: dict) -> str:
+    """The results as a Markdown table, one row per point."""
+    m = summary["machine"]
+    lines = [f"Measured by `gainfpn bench{' --quick' if summary['quick'] else ''}` in {summary['duration_s']:.0f} s "
+             f"on {m['cpus']} CPUs ({m['processor']}, {m['platform']}, Python {m['python']}).", "",
+             "| group | point | burst | residual FPN % | MSE before | MSE after | ratio | time s "
+             "(read / motion / solve / write) | peak RSS MB |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for r in summary["points"]:
+        b = r["burst"]
+        burst = f"{b['shape'][1]}x{b['shape'][0]}x{b['n_frames']}"
+        t = r.get("timings", {})
+        stages = " / ".join(f"{t[k]:.2f}" for k in ("read_s", "motion_s", "solve_s", "write_s") if k in t)
+        total = t.get("total_s", t.get("solve_s"))
+        time_text = f"{total:.2f}" + (f" ({stages})" if stages and "total_s" in t else "") if total else ""
+        if "parallel_speedup" in r:
+            time_text = ", ".join(f"{k} {v:.2f}" for k, v in t["solve_by_workers_s"].items()) + \
+                f"; speed-up {r['parallel_speedup']:.2f}x"
+        fmt = lambda key, spec: format(r[key], spec) if key in r else ""  # noqa: E731
+        lines.append(f"| {r['group']} | {r['label']} | {burst} | {fmt('residual_fpn_percent', '.2f')} | "
+                     f"{fmt('mse_before', '.2f')} | {fmt('mse_after', '.2f')} | {fmt('mse_ratio', '.1f')} | "
+                     f"{time_text} | {r['peak_rss_mb']:.0f} |")
+    exponents = {r.get("fitted_time_exponent") for r in summary["points"]} - {None}
+    if exponents:
+        lines += ["", f"Time grows as (pixels x frames)^{exponents.pop():.2f} (balanced preset, least squares in log-log)."]
+    return "\n".join(lines) + "\n"
+
+
+def plot(summary: dict, out_dir: Path) -> list[Path]:
+    """pareto.png, scaling.png and flow_error.png; none without matplotlib (``pip install gainfpn[bench]``)."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return []
+    rows = summary["points"]
+    written = []
+    timed = [r for r in rows if r["kind"] == "pipeline" and r["group"] not in ("scaling_pixels", "scaling_frames")]
+    if timed:
+        fig, ax = plt.subplots(figsize=(7, 4.5))
+        for r in timed:
+            star = r["group"] in ("preset", "reference")
+            ax.scatter(r["timings"]["total_s"], r["residual_fpn_percent"], marker="*" if star else "o",
+                       s=120 if star else 30, color="C1" if star else "C0")
+            if star:
+                ax.annotate(r["label"], (r["timings"]["total_s"], r["residual_fpn_percent"]), fontsize=7,
+                            xytext=(4, 4), textcoords="offset points")
+        for r in rows:
+            if r["kind"] in ("floor", "flat-field"):
+                ax.axhline(r["residual_fpn_percent"], color="grey", ls="--", lw=0.8)
+                ax.annotate(r["label"], (ax.get_xlim()[0], r["residual_fpn_percent"]), fontsize=7, color="grey")
+        ax.set(xscale="log", xlabel="wall time, end to end (s)", ylabel="residual gain FPN (%)",
+               title="accuracy against time (stars: presets and the published form)")
+        written.append(_save(fig, out_dir / "pareto.png"))
+    scaling = [r for r in rows if r["group"] == "scaling_pixels"]
+    if scaling:
+        fig, (a1, a2) = plt.subplots(1, 2, figsize=(9, 3.8))
+        for preset in sorted({r["preset"] for r in scaling}):
+            sel = [r for r in scaling if r["preset"] == preset]
+            a1.plot([r["megapixels"] for r in sel], [r["timings"]["total_s"] for r in sel], "o-", label=preset)
+            a2.plot([r["megapixels"] for r in sel], [r["peak_rss_mb"] / 1024 for r in sel], "o-", label=preset)
+        a1.set(xscale="log", yscale="log", xlabel="megapixels (8 frames)", ylabel="time (s)")
+        a2.set(xscale="log", xlabel="megapixels (8 frames)", ylabel="peak RSS (GiB)")
+        a1.legend()
+        written.append(_save(fig, out_dir / "scaling.png"))
+    flow = [r for r in rows if r["kind"] == "flow-error"]
+    if flow:
+        fig, ax = plt.subplots(figsize=(6, 3.8))
+        ax.plot([r["flow_error_px"] for r in flow], [r["mse_ratio"] for r in flow], "o-")
+        ax.axhline(1.0, color="grey", ls="--", lw=0.8)
+        ax.set(yscale="log", xlabel="injected motion error, RMS (px)", ylabel="MSE before / after",
+               title="flow-error sensitivity (accurate solver, true motion + error)")
+        written.append(_save(fig, out_dir / "flow_error.png"))
+    return written
+
+
+def _save(fig, path: Path) -> Path:
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)
+    return path
