@@ -95,11 +95,11 @@ def plan(quick: bool) -> list[Point]:
                      kind="workers")]
     for mp, shape in ((0.3, (480, 640)), (2, (1200, 1600)), (12, (3000, 4000)), (24, (4240, 5660))):
         for preset in ("fast", "balanced"):
-            points.append(Point("scaling_pixels", f"{preset}, {mp} MP", BurstSpec(shape=shape, supersample=1),
+            points.append(Point("scaling_pixels", f"{preset}, {mp} MP", BurstSpec(shape=shape, supersample=2),
                                 preset=preset))
     for n in (4, 16, 32):
         points.append(Point("scaling_frames", f"balanced, {n} frames, 2 MP",
-                            BurstSpec(shape=(1200, 1600), n_frames=n, supersample=1), preset="balanced"))
+                            BurstSpec(shape=(1200, 1600), n_frames=n, supersample=2), preset="balanced"))
     return points
 
 
