@@ -120,14 +120,8 @@ def tracking_image(frame: np.ndarray, lo: float, hi: float) -> np.ndarray:
     return to_uint8(cv2.GaussianBlur(np.asarray(frame, np.float32), (0, 0), TRACK_SIGMA), lo, hi)
 
 
-def track_points(reference: np.ndarray, frame: np.ndarray, *, max_points: int = 4000,
-                 quality: float = TRACK_QUALITY) -> tuple[np.ndarray, np.ndarray]:
-    """Corners of the reference tracked into ``frame`` by pyramidal Lucas-Kanade.
-
-    Both images are uint8. Points whose forward-backward track misses its
-    start by more than 0.1 px are dropped. Returns ``(src, dst)``, each
-    ``(n, 2)`` float64 ``(x, y)``.
-    """
+def find_corners(reference: np.ndarray, *, max_points: int = 4000, quality: float = TRACK_QUALITY) -> np.ndarray:
+    """Shi-Tomasi corners of the uint8 reference, cell by cell: ``(n, 1, 2)`` float32 ``(x, y)``."""
     import cv2
 
     h, w = reference.shape
@@ -141,9 +135,22 @@ def track_points(reference: np.ndarray, frame: np.ndarray, *, max_points: int = 
                                             minDistance=spacing, blockSize=7, mask=mask)
             if found is not None:
                 cells.append(found)
-    if not cells:
+    return np.concatenate(cells).astype(np.float32) if cells else np.empty((0, 1, 2), np.float32)
+
+
+def track_points(reference: np.ndarray, frame: np.ndarray, corners: np.ndarray | None = None
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Corners of the reference (:func:`find_corners` unless given) tracked into ``frame`` by pyramidal Lucas-Kanade.
+
+    Both images are uint8. Points whose forward-backward track misses its
+    start by more than 0.1 px are dropped. Returns ``(src, dst)``, each
+    ``(n, 2)`` float64 ``(x, y)``.
+    """
+    import cv2
+
+    corners = find_corners(reference) if corners is None else corners
+    if len(corners) == 0:
         return np.empty((0, 2)), np.empty((0, 2))
-    corners = np.concatenate(cells).astype(np.float32)
     params = dict(winSize=(21, 21), maxLevel=5, criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 60, 1e-3))
     shift = coarse_shift(reference, frame)
     try:
@@ -267,9 +274,10 @@ def estimate_global_motion(
     if hi - lo <= 0:
         raise EstimationError("the reference frame is uniform: no texture to track")
     ref8 = tracking_image(frames[0], lo, hi)
+    corners = find_corners(ref8)  # once per burst
     fits, per_frame = [], []
     for t in range(1, len(frames)):
-        src, dst = track_points(ref8, tracking_image(frames[t], lo, hi))
+        src, dst = track_points(ref8, tracking_image(frames[t], lo, hi), corners)
         try:
             models, inliers = fit_models(src, dst)
         except EstimationError as exc:
