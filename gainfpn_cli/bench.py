@@ -134,12 +134,20 @@ def run(out_dir: Path, *, quick: bool, progress=None) -> list[dict]:
     return results
 
 
+def _sensor(spec: BurstSpec):
+    """The bench sensor; with column FPN, 3 % pixel + the column part (METHOD.md section 4's second case)."""
+    from .simulate import PRESETS, with_overrides
+
+    return with_overrides(PRESETS[SENSOR], fpn_pixel=0.03 if spec.fpn_column else None,
+                          fpn_column=spec.fpn_column or None)
+
+
 def _make_burst(spec: BurstSpec, folder: Path) -> None:
-    from .simulate import PRESETS, simulate_burst, with_overrides
+    from .simulate import simulate_burst
     from .truth import save_burst
 
-    sensor = with_overrides(PRESETS[SENSOR], fpn_pixel=0.03 if spec.fpn_column else None,
-                            fpn_column=spec.fpn_column or None)
+    sensor = _sensor(spec)
+
     burst = simulate_burst(shape=spec.shape, n_frames=spec.n_frames, seed=spec.seed, scene=spec.scene,
                            sensor=sensor, supersample=spec.supersample)
     save_burst(burst, folder, fmt="exr", parameters=dataclasses.asdict(spec))
@@ -199,23 +207,19 @@ def _pipeline(point: Point, folder: Path, out: Path) -> dict:
 
 
 def _scores(k: np.ndarray, folder: Path, truth) -> dict:
+    """:func:`pipeline.scores` of a gain map that covers every pixel."""
     from .io import find_frames, read_frame
-    from .metrics import mse, residual_fpn_percent
+    from .pipeline import scores
 
     frame0 = read_frame(find_frames([folder])[0]).data[..., 0]
-    est = np.ones(frame0.shape, bool)
-    return {"input_fpn_percent": residual_fpn_percent(np.ones_like(frame0), truth.gain, est),
-            "residual_fpn_percent": residual_fpn_percent(k, truth.gain, est),
-            "mse_before": mse(frame0, truth.ideal, est), "mse_after": mse(k * frame0, truth.ideal, est),
-            "mse_floor": mse(frame0 / truth.gain, truth.ideal, est), "estimated_fraction": 1.0}
+    return scores(np.asarray(k, np.float32), np.ones(frame0.shape, bool), frame0, truth)
 
 
 def _flat_field_k(spec: BurstSpec) -> np.ndarray:
     """What a lab with a flat-field rig gets from as many frames: uniformly lit, averaged."""
-    from .simulate import PRESETS, Shake, simulate_burst, with_overrides
+    from .simulate import Shake, simulate_burst
 
-    sensor = with_overrides(PRESETS[SENSOR], fpn_pixel=0.03 if spec.fpn_column else None,
-                            fpn_column=spec.fpn_column or None)
+    sensor = _sensor(spec)
     flat = simulate_burst(shape=spec.shape, n_frames=spec.n_frames, seed=spec.seed, sensor=sensor, supersample=1,
                           scene=np.full((8, 8), 0.5, np.float32), shake=Shake(translation_px=0, rotation_deg=0))
     mean = flat.frames.astype(np.float64).mean(axis=0) - sensor.black_level

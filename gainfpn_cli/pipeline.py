@@ -384,13 +384,17 @@ def evaluate(out_dir: Path, sim_dir: Path) -> dict:
     est = confidence > 0
     if not est.any():
         raise EstimationError(f"{out_dir}: the gain map has no estimated pixel")
-    kk = k[..., 0]
+    return scores(k[..., 0], est, frame0, truth)
+
+
+def scores(k: np.ndarray, est: np.ndarray, frame0: np.ndarray, truth) -> dict:
+    """Residual gain FPN and the paper's MSE of frame 0 before/after ``k``, over the pixels ``est``."""
     return {
         "estimated_fraction": float(est.mean()),
-        "input_fpn_percent": residual_fpn_percent(np.ones_like(kk), truth.gain, est),
-        "residual_fpn_percent": residual_fpn_percent(kk, truth.gain, est),
+        "input_fpn_percent": residual_fpn_percent(np.ones_like(k), truth.gain, est),
+        "residual_fpn_percent": residual_fpn_percent(k, truth.gain, est),
         "mse_before": mse(frame0, truth.ideal, est),
-        "mse_after": mse(kk * frame0, truth.ideal, est),
+        "mse_after": mse(k * frame0, truth.ideal, est),
         "mse_floor": mse(frame0 / truth.gain, truth.ideal, est),
     }
 
