@@ -204,8 +204,7 @@ def fit_models(src: np.ndarray, dst: np.ndarray, *, threshold: float = INLIER_PX
         if H is None:
             break
         residual = transfer_residuals(H, src, dst)
-        sigma = np.sqrt(np.median(residual[inliers] ** 2) / (2 * np.log(2)))  # per-coordinate noise
-        grown = residual < min(threshold, LOCAL_SIGMAS * sigma)
+        grown = residual < min(threshold, LOCAL_SIGMAS * np.sqrt(_noise_variance(residual[inliers])))
         if np.array_equal(grown, inliers):
             break
         inliers = grown
@@ -238,12 +237,16 @@ def gric(models: dict[str, np.ndarray], src: np.ndarray, dst: np.ndarray, inlier
     another (2-D maps of 2-D points: the ``d n`` terms are equal and dropped).
     """
     n = len(src)
-    e2 = transfer_residuals(models["homography"], src[inliers], dst[inliers]) ** 2
-    sigma2 = max(float(np.median(e2)) / (2 * np.log(2)), 1e-8)  # per coordinate
+    sigma2 = max(_noise_variance(transfer_residuals(models["homography"], src[inliers], dst[inliers])), 1e-8)
     return {
         name: float(np.sum(np.minimum(transfer_residuals(H, src, dst) ** 2 / sigma2, 4.0)) + MODEL_PARAMS[name] * np.log(4 * n))
         for name, H in models.items()
     }
+
+
+def _noise_variance(distances: np.ndarray) -> float:
+    """Per-coordinate variance of 2-D Gaussian errors from their lengths: median(d^2) = 2 ln 2 sigma^2."""
+    return float(np.median(distances**2)) / (2 * np.log(2))
 
 
 def transfer_residuals(H: np.ndarray, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
@@ -335,8 +338,8 @@ def moving_masks(frames: np.ndarray, homographies: np.ndarray) -> np.ndarray:
     frames = np.asarray(frames, np.float32)
     n, h, w = frames.shape
     lo, hi = np.percentile(frames[0], [0.5, 99.5])
-    track = [tracking_image(f, lo, hi) for f in frames]
     smooth = [cv2.GaussianBlur(f, (0, 0), TRACK_SIGMA) for f in frames]
+    track = [to_uint8(f, lo, hi) for f in smooth]  # tracking_image without blurring twice
     grid = np.stack(np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32)), axis=-1)
     dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
 
