@@ -60,6 +60,8 @@ class Shake:
     rotation_deg: float = 0.3  # sigma of the per-frame rotation about the centre
     drift_px: float = 0.0  # steady pan over the whole burst, px, in a random direction
     perspective: float = 0.0  # sigma of the projective terms, 1/px
+    wobble_px: float = 0.0  # sigma of a rolling-shutter wobble's amplitude, px (no single warp explains it)
+    wobble_cycles: float = 1.5  # its periods over the frame height
 
 
 #: Named sensors: the paper's, and a 12-bit RGGB camera for DNG bursts.
@@ -96,11 +98,22 @@ class Burst:
     homographies: np.ndarray
     sensor: Sensor
     moving: np.ndarray | None = None
+    wobble: np.ndarray | None = None
 
     @property
     def saturation(self) -> int:
         """Largest count above black the ADC can give."""
         return self.sensor.white_level - self.sensor.black_level
+
+    def positions(self, t: int) -> np.ndarray:
+        """Where frame t sees every reference pixel: ``(H, W, 2)`` float64 ``(x, y)``, wobble included."""
+        from .motion import positions_from_homography
+
+        pos = positions_from_homography(self.homographies[t], self.frames.shape[1:])
+        if self.wobble is not None:
+            rows = np.arange(self.frames.shape[1], dtype=np.float64)[:, None]  # the reference's y
+            pos[..., 0] += wobble_shift(self.wobble[t], rows)
+        return pos
 
 
 def shake_homographies(n_frames: int, shape: tuple[int, int], shake: Shake, rng: np.random.Generator) -> np.ndarray:
@@ -122,6 +135,28 @@ def shake_homographies(n_frames: int, shape: tuple[int, int], shake: Shake, rng:
         persp[2, :2] = rng.normal(0.0, shake.perspective, size=2)
         out[t] = back @ rot @ persp @ to_origin
     return out
+
+
+def wobble_parameters(n_frames: int, shape: tuple[int, int], shake: Shake, rng: np.random.Generator) -> np.ndarray | None:
+    """Per frame ``(amplitude px, phase rad, wavelength px)`` of the wobble, or None without one.
+
+    Frame t sees reference point ``(x, y)`` at ``H_t (x, y) + (A sin(2 pi y / L + phi), 0)``:
+    a shear that oscillates down the frame, as a rolling shutter records a
+    vibrating camera. The reference has none.
+    """
+    if shake.wobble_px <= 0:
+        return None
+    out = np.zeros((n_frames, 3))
+    out[:, 2] = shape[0] / shake.wobble_cycles
+    out[1:, 0] = rng.normal(0.0, shake.wobble_px, n_frames - 1)
+    out[1:, 1] = rng.uniform(0, 2 * np.pi, n_frames - 1)
+    return out
+
+
+def wobble_shift(parameters: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """The wobble's horizontal shift at reference row ``y``."""
+    amplitude, phase, wavelength = parameters
+    return amplitude * np.sin(2 * np.pi * y / wavelength + phase)
 
 
 def procedural_scene(shape: tuple[int, int], rng: np.random.Generator, *, colour: bool = False) -> np.ndarray:
@@ -225,11 +260,14 @@ def _margin(homographies: np.ndarray, shape: tuple[int, int]) -> int:
     return int(np.ceil(worst)) + 4
 
 
-def render(scene: np.ndarray, H: np.ndarray, shape: tuple[int, int], *, scale: int, margin: int, supersample: int) -> np.ndarray:
+def render(scene: np.ndarray, H: np.ndarray, shape: tuple[int, int], *, scale: int, margin: int, supersample: int,
+           wobble: np.ndarray | None = None) -> np.ndarray:
     """Area-integrate the scene as seen by a frame with homography ``H`` (ref -> frame).
 
     Scene raster pixel ``j`` has its centre at reference coordinate
-    ``(j + 0.5) / scale - 0.5 - margin``.
+    ``(j + 0.5) / scale - 0.5 - margin``. With ``wobble`` parameters (see
+    :func:`wobble_parameters`) the frame sees reference point ``p`` at
+    ``H p + shift(p)``; each sample's ``p`` is found by fixed-point iteration.
     """
     import cv2
 
@@ -241,13 +279,24 @@ def render(scene: np.ndarray, H: np.ndarray, shape: tuple[int, int], *, scale: i
     for dv in steps:
         for du in steps:
             X, Y = xs + du, ys + dv
-            den = Hinv[2, 0] * X + Hinv[2, 1] * Y + Hinv[2, 2]
-            px = (Hinv[0, 0] * X + Hinv[0, 1] * Y + Hinv[0, 2]) / den
-            py = (Hinv[1, 0] * X + Hinv[1, 1] * Y + Hinv[1, 2]) / den
+            px, py = _apply(Hinv, X, Y)
+            if wobble is not None and wobble[0] != 0:
+                for _ in range(WOBBLE_ITERATIONS):  # p = H^-1 (q - shift(p)): a contraction for gentle wobble
+                    px, py = _apply(Hinv, X - wobble_shift(wobble, py), Y)
             map_x = ((px + margin + 0.5) * scale - 0.5).astype(np.float32)
             map_y = ((py + margin + 0.5) * scale - 0.5).astype(np.float32)
             acc += cv2.remap(scene, map_x, map_y, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
     return np.clip(acc / supersample**2, 0.0, None)
+
+
+#: Fixed-point iterations that invert the wobble (error shrinks ~10x each for
+#: amplitudes of a few px over wavelengths of ~100 px).
+WOBBLE_ITERATIONS = 8
+
+
+def _apply(H: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    den = H[2, 0] * x + H[2, 1] * y + H[2, 2]
+    return (H[0, 0] * x + H[0, 1] * y + H[0, 2]) / den, (H[1, 0] * x + H[1, 1] * y + H[1, 2]) / den
 
 
 def simulate_burst(
@@ -291,7 +340,8 @@ def simulate_burst(
         raise ValueError(f"sensor.cfa must be a 2x2 RGB layout such as RGGB, got {sensor.cfa!r}")
     rng_scene, rng_motion, rng_gain, rng_noise = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(4))
     homographies = shake_homographies(n_frames, shape, shake, rng_motion)
-    margin = _margin(homographies, shape)
+    wobble = wobble_parameters(n_frames, shape, shake, rng_motion)
+    margin = _margin(homographies, shape) + (0 if wobble is None else int(np.ceil(np.abs(wobble[:, 0]).max())))
     scale = 2
     raster_shape = ((h + 2 * margin) * scale, (w + 2 * margin) * scale)
     colour = sensor.cfa is not None
@@ -314,7 +364,8 @@ def simulate_burst(
     moving = None if obj is None else np.zeros((n_frames, h, w), bool)
     full_scale_dn = float(sensor.white_level - sensor.black_level)
     for t in range(n_frames):
-        light = render(raster, homographies[t], shape, scale=scale, margin=margin, supersample=supersample)
+        light = render(raster, homographies[t], shape, scale=scale, margin=margin, supersample=supersample,
+                       wobble=None if wobble is None else wobble[t])
         if obj is not None:
             texture, alpha, offsets = obj
             H_obj = homographies[t] @ np.array([[1.0, 0, offsets[t, 0]], [0, 1.0, offsets[t, 1]], [0, 0, 1.0]])
@@ -331,7 +382,8 @@ def simulate_burst(
         signal = collected + rng_noise.normal(0.0, sensor.read_noise_e, shape)
         counts = np.floor(np.clip(signal, 0.0, sensor.full_well_e) * sensor.dn_per_e + 0.5) + sensor.black_level
         frames[t] = np.clip(counts, 0, sensor.white_level)
-    return Burst(frames=frames, gain=gain, ideal=ideal, homographies=homographies, sensor=sensor, moving=moving)
+    return Burst(frames=frames, gain=gain, ideal=ideal, homographies=homographies, sensor=sensor, moving=moving,
+                 wobble=wobble)
 
 
 def _moving_object(raster, fraction, n_frames, shape, scale, margin, rng):

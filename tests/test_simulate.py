@@ -162,3 +162,27 @@ def test_named_scenes():
         simulate_burst(shape=(8, 8), n_frames=1, scene="leaves")
     with pytest.raises(ValueError, match="r_min"):
         dead_leaves((8, 8), np.random.default_rng(0), r_min=0.0)
+
+
+def test_wobble_truth_positions_match_the_rendered_frames():
+    # a rolling-shutter wobble: no single warp explains it, Burst.positions does
+    import cv2
+
+    from gainfpn_cli.motion import positions_from_homography
+
+    shape = (120, 160)
+    burst = simulate_burst(shape=shape, n_frames=3, seed=4, shake=Shake(wobble_px=1.0), scene="procedural")
+    assert burst.wobble is not None and np.all(burst.wobble[0, :2] == 0)
+    core = np.s_[12:-12, 12:-12]
+    for t in (1, 2):
+        errors = {}
+        for label, pos in (("truth", burst.positions(t)), ("warp", positions_from_homography(burst.homographies[t], shape))):
+            for dx in (-0.2, 0.0, 0.2):
+                q = (pos + [dx, 0.0]).astype(np.float32)
+                seen = cv2.remap(burst.ideal[t], q[..., 0], q[..., 1], cv2.INTER_CUBIC)
+                errors[label, dx] = np.sqrt(np.mean((seen - burst.ideal[0])[core] ** 2))
+        assert errors["truth", 0.0] < min(errors["truth", -0.2], errors["truth", 0.2])  # exact to < 0.2 px
+        assert errors["truth", 0.0] < 0.5 * errors["warp", 0.0]
+    plain = simulate_burst(shape=shape, n_frames=3, seed=4, scene="procedural")
+    assert plain.wobble is None
+    np.testing.assert_array_equal(plain.positions(1), positions_from_homography(plain.homographies[1], shape))
