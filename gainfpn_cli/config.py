@@ -132,6 +132,12 @@ class MotionConfig:
         choice("auto", "translation", "affine", "homography"),
         "global motion model; auto picks the one with the lowest GRIC (robust information criterion)",
     )
+    # Measured (6 bursts per case, 200x260x8, fast and balanced solvers): on the
+    # smooth procedural scene one round cuts the worst-frame motion error
+    # (median 0.049 -> 0.029 px for a 25 px drift) but not the MSE (19.3x
+    # either way); on dead leaves it makes both worse (0.011 -> 0.032 px,
+    # 10.9x -> 10.0x); at 480x640 (bench) 18.2x -> 18.4x for twice the solve
+    # time. Hence 0 by default.
     refine_rounds: int = _key(
         0, non_negative_int, "estimate k, correct the frames, re-estimate motion and solve again this many times"
     )

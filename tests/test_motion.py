@@ -34,8 +34,9 @@ SHAKE4 = Shake(translation_px=2.5, rotation_deg=0.5)
 DRIFT = Shake(translation_px=1.0, rotation_deg=0.2, drift_px=25)
 KNOWN_MISS = pytest.mark.xfail(
     strict=True,
-    reason="issue 4 open: single-pass tracking misses 0.05 px on this held-out burst "
-    "(measured worst frame 0.083 px for shake4px seed 5, 0.061 px for drift25px seed 6)",
+    reason="issue 4 open: on the smooth procedural scene tracking misses 0.05 px on this held-out burst "
+    "(measured worst frame 0.083 px for shake4px seed 5, 0.061 px for drift25px seed 6). The gain FPN "
+    "is the cause: with the frames divided by the true gain the worst of 24 such bursts is 0.025 px",
 )
 
 
@@ -59,6 +60,14 @@ def test_global_warp_is_sub_pixel_accurate_despite_fpn(seed, shake):
     result = estimate_global_motion(burst.frames.astype(np.float32))
     assert _worst(burst, result) <= 0.05
     np.testing.assert_array_equal(result.homographies[0], np.eye(3))
+
+
+@pytest.mark.parametrize("shake", [Shake(), SHAKE4, DRIFT], ids=["shake", "shake4px", "drift25px"])
+def test_global_warp_on_dead_leaves_is_sub_pixel_accurate(shake):
+    # issue 4's 0.05 px on the scene with sharp edges at every scale; seeds 3-10
+    # measured worst frame 0.033 px over 24 bursts, held-out seed 11 0.014-0.019 px
+    burst = simulate_burst(shape=SHAPE, n_frames=6, seed=11, shake=shake, scene="dead-leaves")
+    assert _worst(burst, estimate_global_motion(burst.frames.astype(np.float32))) <= 0.05
 
 
 @pytest.mark.parametrize("seed, shake, limit", [(5, Shake(), 0.05), (6, Shake(), 0.05), (7, DRIFT, 0.1)],
