@@ -373,9 +373,11 @@ def moving_masks(frames: np.ndarray, homographies: np.ndarray, *, factor: int | 
     sx, sy = size[0] / w, size[1] / h
     to_reduced = np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]])
     lo, hi = np.percentile(frames[0], [0.5, 99.5])
-    smooth = [cv2.GaussianBlur(f, (0, 0), TRACK_SIGMA) for f in frames]
-    if factor > 1:
-        smooth = [cv2.resize(f, size, interpolation=cv2.INTER_AREA) for f in smooth]
+    def smoothed(frame: np.ndarray) -> np.ndarray:
+        blurred = cv2.GaussianBlur(frame, (0, 0), TRACK_SIGMA)
+        return blurred if factor == 1 else cv2.resize(blurred, size, interpolation=cv2.INTER_AREA)
+
+    smooth = [smoothed(f) for f in frames]  # one full-size blurred frame at a time
     track = [to_uint8(f, lo, hi) for f in smooth]  # tracking_image without blurring twice
     grid = np.stack(np.meshgrid(np.arange(size[0], dtype=np.float32), np.arange(size[1], dtype=np.float32)), axis=-1)
     dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
