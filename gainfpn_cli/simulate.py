@@ -365,13 +365,13 @@ def simulate_burst(
     moving = None if obj is None else np.zeros((n_frames, h, w), bool)
     full_scale_dn = float(sensor.white_level - sensor.black_level)
     for t in range(n_frames):
-        light = render(raster, homographies[t], shape, scale=scale, margin=margin, supersample=supersample,
-                       wobble=None if wobble is None else wobble[t])
-        if obj is not None:
+        view = dict(scale=scale, margin=margin, supersample=supersample, wobble=None if wobble is None else wobble[t])
+        light = render(raster, homographies[t], shape, **view)
+        if obj is not None:  # the object is recorded by the same (rolling) shutter
             texture, alpha, offsets = obj
             H_obj = homographies[t] @ np.array([[1.0, 0, offsets[t, 0]], [0, 1.0, offsets[t, 1]], [0, 0, 1.0]])
-            cover = render(alpha, H_obj, shape, scale=scale, margin=margin, supersample=supersample)
-            seen = render(texture, H_obj, shape, scale=scale, margin=margin, supersample=supersample)
+            cover = render(alpha, H_obj, shape, **view)
+            seen = render(texture, H_obj, shape, **view)
             cover = np.clip(cover, 0.0, 1.0).reshape(cover.shape + (1,) * (light.ndim - cover.ndim))
             light = light * (1.0 - cover) + seen
             moving[t] = cover.reshape(shape) > 1e-3
