@@ -3,8 +3,9 @@ solve that removes what limits the published form (METHOD.md section 5).
 
 Every frame ``s`` anchors comparisons with every other frame ``t``: pixel
 ``q`` of frame ``s`` sees the scene point that frame ``t`` sees at
-``M_st q`` (``M_st = H_t H_s^-1``), so brightness constancy of the corrected
-frames reads
+``M_st q`` (``M_st = H_t H_s^-1`` for global motion, a map for a field
+model: :mod:`trajectory`), so brightness constancy of the corrected frames
+reads
 
     k(q) i_s(q)  =  sum_c w_c k(c) i_t(c)                              (*)
 
@@ -37,6 +38,7 @@ import numpy as np
 from .blocks import GainResult
 from .errors import EstimationError
 from .parallel import map_ordered
+from .trajectory import FieldWarp, GlobalWarp, as_warp
 from .warp import KERNELS, low_pass, sample, valid_samples
 
 #: Predicted standard error of k at which confidence is 0.5.
@@ -110,42 +112,43 @@ class _Tile:
     y0: int
     x0: int
     frames: np.ndarray  # (F, h, w) crop of every frame over the tile and its halo
-    pair_maps: tuple  # ((s, t, M_st in crop coordinates), ...)
+    pairs: tuple  # ((s, t), ...) compared
+    motion: GlobalWarp | FieldWarp  # maps computed in the worker: a field model's cost a moment each
     saturation: float
     options: AccurateOptions
 
 
 def solve_accurate(
     frames: np.ndarray,
-    homographies: np.ndarray,
+    motion,
     *,
     options: AccurateOptions = AccurateOptions(),
     saturation: float | None = None,
     workers: int = 2,
     progress=None,
 ) -> GainResult:
-    """Estimate ``k`` for a burst moving by global homographies.
+    """Estimate ``k`` for a burst whose motion is known.
 
     Parameters
     ----------
     frames : ndarray, shape (F, H, W)
         All frames, DN after offset removal; ``F >= 2``.
-    homographies : ndarray, shape (F, 3, 3)
-        ``H_t_ref`` of each frame (the reference's is the identity).
+    motion : GlobalWarp, FieldWarp or ndarray of shape (F, 3, 3)
+        The motion, or ``H_t_ref`` of each frame (the reference's is the identity).
     saturation : float, optional
         Samples at or above this level are excluded.
     """
     frames = np.asarray(frames, dtype=np.float32)
-    homographies = np.asarray(homographies, dtype=np.float64)
     if frames.ndim != 3 or frames.shape[0] < 2:
         raise ValueError(f"frames must have shape (F, H, W) with F >= 2, got {frames.shape}")
-    if homographies.shape != (frames.shape[0], 3, 3) or not np.all(np.isfinite(homographies)):
-        raise ValueError(f"homographies must be finite with shape {(frames.shape[0], 3, 3)}, got {homographies.shape}")
+    motion = as_warp(motion)
+    if motion.n_frames != frames.shape[0]:
+        raise ValueError(f"motion is given for {motion.n_frames} frames, there are {frames.shape[0]}")
     if options.kernel not in KERNELS:
         raise ValueError(f"kernel must be one of {', '.join(KERNELS)}, got {options.kernel!r}")
     if options.anchors not in ("all", "reference"):
         raise ValueError(f"anchors must be 'all' or 'reference', got {options.anchors!r}")
-    _check_motion(homographies, frames.shape[1:])
+    _check_motion(motion.homographies, frames.shape[1:])
     h, w = frames.shape[1:]
     radius = KERNELS[options.kernel][1]
     if min(h, w) <= 2 * radius:
@@ -154,7 +157,7 @@ def solve_accurate(
             f"{2 * radius} px on each side (use solver.interpolation: bilinear, or solver.method: paper)"
         )
     sat = np.inf if saturation is None else float(saturation)
-    tiles = _tiles(frames, homographies, sat, options)
+    tiles = _tiles(frames, motion, sat, options)
     results = map_ordered(_solve_tile, tiles, workers=workers, progress=progress)
     k_sum = np.zeros((h, w))
     conf_sum = np.zeros((h, w))
@@ -203,22 +206,17 @@ def _check_motion(homographies: np.ndarray, shape: tuple[int, int]) -> None:
         )
 
 
-def _tiles(frames, homographies, saturation, options) -> list[_Tile]:
+def _tiles(frames, motion, saturation, options) -> list[_Tile]:
     n, h, w = frames.shape
     core, halo = options.tile, options.halo
-    inverse = [np.linalg.inv(H) for H in homographies]
     anchors = range(n) if options.anchors == "all" else [0]
+    pairs = tuple((s, t) for s in anchors for t in partner_frames(s, n, options.partners))
     tiles = []
     for cy in range(0, h, core):
         for cx in range(0, w, core):
             y0, x0 = max(0, cy - halo), max(0, cx - halo)
             y1, x1 = min(h, cy + core + halo), min(w, cx + core + halo)
-            shift = np.array([[1.0, 0, x0], [0, 1.0, y0], [0, 0, 1.0]])
-            maps = tuple(
-                (s, t, np.linalg.inv(shift) @ homographies[t] @ inverse[s] @ shift)
-                for s in anchors for t in partner_frames(s, n, options.partners)
-            )
-            tiles.append(_Tile(y0, x0, frames[:, y0:y1, x0:x1], maps, saturation, options))
+            tiles.append(_Tile(y0, x0, frames[:, y0:y1, x0:x1], pairs, motion, saturation, options))
     return tiles
 
 
@@ -249,31 +247,33 @@ def _solve_tile(tile: _Tile) -> tuple[np.ndarray, np.ndarray, int]:
     opt = tile.options
     frames = tile.frames.astype(np.float64)
     shape = frames.shape[1:]
+    region = (tile.y0, tile.x0) + shape
+    pair_maps = [(s, t, tile.motion.pair(s, t, region)) for s, t in tile.pairs]  # (s, t, M_st in tile pixels)
     good = (frames > 0) & (frames < tile.saturation)
-    valid = [valid_samples(good[t], M, shape, kernel=opt.kernel) & good[s] for s, t, M in tile.pair_maps]
+    valid = [valid_samples(good[t], M, shape, kernel=opt.kernel) & good[s] for s, t, M in pair_maps]
     weights = [v.astype(np.float64) for v in valid]
     x = np.zeros(shape)
     iterations = 0
     for round_ in range(opt.robust_rounds + 1):
-        denom = sum(wt * frames[s] ** 2 for (s, _, _), wt in zip(tile.pair_maps, weights))
+        denom = sum(wt * frames[s] ** 2 for (s, _), wt in zip(tile.pairs, weights))
         est = denom > 0
         if not est.any():
             return np.ones(shape), np.zeros(shape), iterations
-        x, its = _gmres_round(frames, tile, weights, denom, est, x)
+        x, its = _gmres_round(frames, pair_maps, opt, weights, denom, est, x)
         iterations += its
         k = 1.0 + x
-        residuals = _residuals(k, frames, tile)
+        residuals = _residuals(k, frames, pair_maps, opt.kernel)
         if round_ < opt.robust_rounds:
             spread = 1.4826 * np.median(np.abs(np.concatenate([r[v & est] for r, v in zip(residuals, valid)])))
             scale = opt.robust_scale * max(spread, 1e-12)
             weights = [v / (1.0 + (r / scale) ** 2) for r, v in zip(residuals, valid)]
     k = k / low_pass(k, opt.gauge_sigma, est)  # the gauge: low band exactly 1
     k[~est] = 1.0
-    confidence = _confidence(residuals, weights, valid, _anchor_information(frames, tile, weights), est)
+    confidence = _confidence(residuals, weights, valid, _anchor_information(frames, tile.pairs, weights), est)
     return k, confidence, iterations
 
 
-def _anchor_information(frames, tile, weights) -> np.ndarray:
+def _anchor_information(frames, pairs, weights) -> np.ndarray:
     """``sum_s a_s(q) i_s(q)^2``, ``a_s`` the weighted fraction of frame s's comparisons that count.
 
     The comparisons anchored on one reading ``i_s(q)`` share its noise, so k
@@ -281,24 +281,23 @@ def _anchor_information(frames, tile, weights) -> np.ndarray:
     """
     shape = frames.shape[1:]
     partners: dict[int, int] = {}
-    for s, _, _ in tile.pair_maps:
+    for s, _ in pairs:
         partners[s] = partners.get(s, 0) + 1
     info = np.zeros(shape)
-    for (s, _, _), wt in zip(tile.pair_maps, weights):
+    for (s, _), wt in zip(pairs, weights):
         info += wt / partners[s] * frames[s] ** 2
     return info
 
 
-def _gmres_round(frames, tile, weights, denom, est, x0) -> tuple[np.ndarray, int]:
+def _gmres_round(frames, pair_maps, opt, weights, denom, est, x0) -> tuple[np.ndarray, int]:
     """Solve ``(I - M + mu G) x = M 1 - 1`` for one set of comparison weights."""
     from scipy.sparse.linalg import LinearOperator, gmres
 
-    opt = tile.options
     shape = frames.shape[1:]
 
     def apply_m(k: np.ndarray) -> np.ndarray:
         num = np.zeros(shape)
-        for (s, t, M), wt in zip(tile.pair_maps, weights):
+        for (s, t, M), wt in zip(pair_maps, weights):
             num += wt * frames[s] * sample(k * frames[t], M, shape, kernel=opt.kernel)
         return np.divide(num, denom, out=np.zeros(shape), where=est)
 
@@ -318,10 +317,9 @@ def _gmres_round(frames, tile, weights, denom, est, x0) -> tuple[np.ndarray, int
     return x.reshape(shape), count[0]
 
 
-def _residuals(k: np.ndarray, frames: np.ndarray, tile: _Tile) -> list[np.ndarray]:
+def _residuals(k: np.ndarray, frames: np.ndarray, pair_maps, kernel: str) -> list[np.ndarray]:
     """Residual of (*) for every comparison: ``k i_s - W_st(k i_t)``."""
-    shape = k.shape
-    return [k * frames[s] - sample(k * frames[t], M, shape, kernel=tile.options.kernel) for s, t, M in tile.pair_maps]
+    return [k * frames[s] - sample(k * frames[t], M, k.shape, kernel=kernel) for s, t, M in pair_maps]
 
 
 def _confidence(residuals, weights, valid, information, est) -> np.ndarray:

@@ -77,11 +77,13 @@ def _parse_scene(ctx, param, value):
 @click.option("--drift", type=click.FloatRange(0), default=0.0, show_default=True, help="Pan over the burst, px.")
 @click.option("--wobble", type=click.FloatRange(0), default=0.0, show_default=True,
               help="Sigma of a rolling-shutter wobble's amplitude, px (motion no single warp explains).")
+@click.option("--distortion", type=click.FloatRange(0), default=0.0, show_default=True,
+              help="Sigma of a smooth 2-D distortion's amplitude, px (a stand-in for parallax).")
 @click.option("--exposure", type=click.FloatRange(0, min_open=True), default=0.75, show_default=True,
               help="Electrons at scene value 1, as a fraction of full well.")
 @click.option("--overwrite", is_flag=True, help="Replace the results in a non-empty OUT_DIR.")
 def simulate(out_dir, preset, n_frames, size, fmt, seed, scene, fpn_pixel, fpn_column, fpn_row, read_noise, bits,
-             black, cfa, shake, rotation, drift, wobble, exposure, overwrite):
+             black, cfa, shake, rotation, drift, wobble, distortion, exposure, overwrite):
     """Write a synthetic burst with known gains and motion into OUT_DIR."""
     import dataclasses
 
@@ -96,7 +98,8 @@ def simulate(out_dir, preset, n_frames, size, fmt, seed, scene, fpn_pixel, fpn_c
         raise click.BadParameter(f"black level {sensor.black_level} leaves no range below {sensor.white_level}",
                                  param_hint="--black")
     fmt = fmt or ("dng" if sensor.cfa else "exr")
-    motion = Shake(translation_px=shake, rotation_deg=rotation, drift_px=drift, wobble_px=wobble)
+    motion = Shake(translation_px=shake, rotation_deg=rotation, drift_px=drift, wobble_px=wobble,
+                   distortion_px=distortion)
     parameters = {"seed": seed, "shape": list(size), "n_frames": n_frames, "exposure": exposure,
                   "scene": str(scene), "format": fmt,
                   "sensor": dataclasses.asdict(sensor), "shake": dataclasses.asdict(motion)}

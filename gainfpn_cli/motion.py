@@ -12,6 +12,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .errors import EstimationError
+from .fieldfit import FIELD_CELLS, fit_field
+from .fieldfit import residuals as field_residuals
+from .trajectory import FieldWarp, GlobalWarp, as_warp
 
 
 def positions_from_homography(H: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -52,29 +55,36 @@ def positions_from_flow(flow_xy: np.ndarray) -> np.ndarray:
 #: Parameters of each global model, simplest first.
 MODEL_PARAMS = {"translation": 2, "affine": 6, "homography": 8}
 MIN_POINTS = {"translation": 3, "affine": 6, "homography": 8}
+#: Every model, simplest first: the global ones, then the fields of :mod:`fieldfit`.
+MODELS = [*MODEL_PARAMS, *FIELD_CELLS]
 
 
 @dataclass(frozen=True)
 class MotionResult:
-    """Global motion of every frame relative to the reference.
+    """The motion of every frame relative to the reference.
 
     Attributes
     ----------
     homographies : ndarray of float64, shape (F, 3, 3)
-        ``H_t_ref`` under the chosen model (identity for the reference).
+        ``H_t_ref`` under the chosen model (identity for the reference); for
+        a field model, its homography part.
     model : str
-        The chosen model (``translation``, ``affine`` or ``homography``).
+        The chosen model (a key of MODELS).
     per_frame : list of dict
         For each frame: ``tracked`` and ``inliers`` point counts, ``rms_px``
-        (inlier residual under the chosen model) and ``gric`` of each model.
+        (residual under the chosen model on the points it keeps) and
+        ``gric`` of each model.
     reason : str
         Why that model was chosen.
+    warp : GlobalWarp or FieldWarp
+        The motion as maps between frames.
     """
 
     homographies: np.ndarray
     model: str
     per_frame: list = field(default_factory=list)
     reason: str = ""
+    warp: GlobalWarp | FieldWarp | None = None
 
 
 #: Gaussian sigma (px) applied before tracking: gain FPN is white at the pixel
@@ -243,22 +253,20 @@ def _fit_affine(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     return A
 
 
-def gric(models: dict[str, np.ndarray], src: np.ndarray, dst: np.ndarray, inliers: np.ndarray) -> dict[str, float]:
+def gric(residuals: dict[str, np.ndarray], params: dict[str, float], sigma2: float) -> dict[str, float]:
     """Torr's Geometric Robust Information Criterion of each model on one frame's points.
 
     ``GRIC = sum_i min(e_i^2 / sigma^2, 4) + p ln(4 n)``: a squared transfer
-    error in units of the tracking noise ``sigma`` (from the richest model's
-    inliers), capped so that outliers -- a moving object -- cost the same
-    under every model, plus ``ln(4n)`` per parameter. All models are scored on
-    all ``n`` points, so no model is favoured by an inlier set chosen for
-    another (2-D maps of 2-D points: the ``d n`` terms are equal and dropped).
+    error ``e_i`` in units of the tracking noise ``sigma``, capped so that
+    outliers -- a moving object -- cost the same under every model, plus
+    ``ln(4n)`` per parameter ``p``. All models are scored on all ``n``
+    points, so no model is favoured by an inlier set chosen for another
+    (2-D maps of 2-D points: the ``d n`` terms are equal and dropped).
     """
-    n = len(src)
-    sigma2 = max(_noise_variance(transfer_residuals(models["homography"], src[inliers], dst[inliers])), 1e-8)
-    return {
-        name: float(np.sum(np.minimum(transfer_residuals(H, src, dst) ** 2 / sigma2, 4.0)) + MODEL_PARAMS[name] * np.log(4 * n))
-        for name, H in models.items()
-    }
+    out = {}
+    for name, e in residuals.items():
+        out[name] = float(np.sum(np.minimum(e**2 / sigma2, 4.0)) + params[name] * np.log(4 * len(e)))
+    return out
 
 
 def _noise_variance(distances: np.ndarray) -> float:
@@ -272,58 +280,89 @@ def transfer_residuals(H: np.ndarray, src: np.ndarray, dst: np.ndarray) -> np.nd
     return np.linalg.norm(p[:, :2] / p[:, 2:3] - dst, axis=1)
 
 
-def estimate_global_motion(
+def estimate_motion(
     frames: np.ndarray,
     *,
     model: str = "auto",
     progress=None,
 ) -> MotionResult:
-    """``H_t_ref`` for every frame of a burst whose first frame is the reference.
+    """The motion of every frame of a burst whose first frame is the reference.
 
     Corners of the reference are tracked into each frame (pyramidal
-    Lucas-Kanade: shakes of tens of pixels work) and the global models are
-    fitted to them. With ``model="auto"`` the burst gets the model with the
-    lowest :func:`gric` summed over frames -- the simplest the data support.
+    Lucas-Kanade: shakes of tens of pixels work); the global models and the
+    field models (:mod:`fieldfit`) are fitted to them. With ``model="auto"``
+    the burst gets the model with the lowest :func:`gric` summed over frames
+    -- the simplest the data support.
     """
-    if model != "auto" and model not in MODEL_PARAMS:
-        raise ValueError(f"model must be auto or one of {', '.join(MODEL_PARAMS)}, got {model!r}")
+    if model != "auto" and model not in MODELS:
+        raise ValueError(f"model must be auto or one of {', '.join(MODELS)}, got {model!r}")
     frames = np.asarray(frames, np.float32)
     if frames.ndim != 3 or frames.shape[0] < 2:
         raise ValueError(f"frames must have shape (F, H, W) with F >= 2, got {frames.shape}")
+    shape = frames.shape[1:]
     lo, hi = np.percentile(frames[0], [0.5, 99.5])
     if hi - lo <= 0:
         raise EstimationError("the reference frame is uniform: no texture to track")
     ref8 = tracking_image(frames[0], lo, hi)
     corners = find_corners(ref8)  # once per burst
+    candidates = MODELS if model == "auto" else [model]
     fits, per_frame = [], []
     for t in range(1, len(frames)):
         src, dst = track_points(ref8, tracking_image(frames[t], lo, hi), corners)
         try:
-            models, inliers = fit_models(src, dst)
+            fit, info = _fit_frame(src, dst, shape, candidates)
         except EstimationError as exc:
             raise EstimationError(f"frame {t}: {exc} (frames must overlap the reference and show texture)") from None
-        s, d = src[inliers], dst[inliers]
-        fits.append((models, s, d))
-        per_frame.append({"tracked": int(len(src)), "inliers": int(inliers.sum()),
-                          "gric": gric(models, src, dst, inliers)})
+        fits.append(fit)
+        per_frame.append(info)
         if progress:
             progress(1)
-    totals = {name: sum(f["gric"][name] for f in per_frame) for name in MODEL_PARAMS}
-    chosen = model if model != "auto" else min(MODEL_PARAMS, key=lambda m: totals[m])
-    reason = ("forced by configuration" if model != "auto" else
-              "lowest total GRIC: " + ", ".join(f"{m} {totals[m]:.1f}" for m in MODEL_PARAMS))
-    homographies = [np.eye(3)]
-    for (models, s, d), info in zip(fits, per_frame):
-        H = models[chosen]
-        info["rms_px"] = float(np.sqrt(np.mean(transfer_residuals(H, s, d) ** 2)))
-        info["displacement_px"] = trajectory_rms(H, np.eye(3), frames.shape[1:], step=8)
-        homographies.append(H)
+    if model == "auto":
+        totals = {name: sum(f["gric"][name] for f in per_frame) for name in MODELS}
+        chosen = min(MODELS, key=lambda m: totals[m])
+        reason = "lowest total GRIC: " + ", ".join(f"{m} {totals[m]:.1f}" for m in MODELS)
+    else:
+        chosen, reason = model, "forced by configuration"
+    warp = _assemble(fits, chosen, shape)
+    for t, info in enumerate(per_frame, start=1):
+        info["rms_px"] = info.pop("rms")[chosen]
+        info["displacement_px"] = trajectory_rms(warp.homographies[t], np.eye(3), shape, step=8)
     if max(f["displacement_px"] for f in per_frame) < STILL_PX:
         raise EstimationError(
             f"no motion: every frame is within {STILL_PX} px of the reference, so the gain cannot be "
             "estimated (pan or shake the camera during the burst)"
         )
-    return MotionResult(np.array(homographies), chosen, per_frame, reason)
+    return MotionResult(warp.homographies, chosen, per_frame, reason, warp)
+
+
+def _fit_frame(src, dst, shape, candidates) -> tuple[dict, dict]:
+    """Every candidate model fitted to one frame's points; its report entry (GRIC, RMS residuals)."""
+    globals_, inliers = fit_models(src, dst)
+    fits: dict = {name: globals_[name] for name in MODEL_PARAMS}
+    residuals = {name: transfer_residuals(H, src, dst) for name, H in fits.items()}
+    used = {name: inliers for name in MODEL_PARAMS}
+    params = dict(MODEL_PARAMS)
+    for name in FIELD_CELLS:
+        if name in candidates:
+            fits[name] = fit_field(src, dst, globals_["homography"], shape, name)
+            residuals[name] = field_residuals(fits[name], src, dst, shape)
+            used[name], params[name] = fits[name].keep, fits[name].dof
+    # the tracking noise: the smallest any candidate reaches on the points it keeps
+    sigma2 = max(min(_noise_variance(residuals[m][used[m]]) for m in candidates), 1e-8)
+    scores = gric({m: residuals[m] for m in candidates}, params, sigma2)
+    rms = {m: float(np.sqrt(np.mean(residuals[m][used[m]] ** 2))) for m in candidates}
+    info = {"tracked": int(len(src)), "inliers": int(inliers.sum()), "gric": scores, "rms": rms}
+    return fits, info
+
+
+def _assemble(fits: list[dict], chosen: str, shape) -> GlobalWarp | FieldWarp:
+    """The warp of the chosen model from each frame's fits (the reference: identity, no field)."""
+    if chosen in MODEL_PARAMS:
+        return GlobalWarp(np.array([np.eye(3)] + [f[chosen] for f in fits]))
+    first = fits[0][chosen].coefficients
+    coefficients = np.zeros((len(fits) + 1,) + first.shape)
+    coefficients[1:] = [f[chosen].coefficients for f in fits]
+    return FieldWarp(np.array([np.eye(3)] + [f[chosen].H for f in fits]), coefficients, tuple(shape))
 
 
 # ---------------------------------------------------------------------------
@@ -354,16 +393,19 @@ def mask_factor(shape: tuple[int, int]) -> int:
     return max(1, int(np.ceil(np.sqrt(shape[0] * shape[1] / MASK_PIXELS))))
 
 
-def moving_masks(frames: np.ndarray, homographies: np.ndarray, *, factor: int | None = None) -> np.ndarray:
-    """Pixels of each frame (in its own coordinates) that do not follow the global motion.
+def moving_masks(frames: np.ndarray, motion, *, factor: int | None = None) -> np.ndarray:
+    """Pixels of each frame (in its own coordinates) that do not follow the estimated motion.
 
+    ``motion`` is a warp of :mod:`trajectory` or ``(F, 3, 3)`` homographies.
     Frame t (t >= 1) is compared with the reference: DIS flow from t to the
-    reference against the warp's prediction, and the smoothed brightness of
+    reference against the motion's prediction, and the smoothed brightness of
     the two. The reference's own mask is the union of its comparisons with
     every frame. The comparison runs on frames reduced ``factor`` times
     (default :func:`mask_factor`). Returns bool ``(F, H, W)``.
     """
     import cv2
+
+    from .warp import positions, sample
 
     frames = np.asarray(frames, np.float32)
     n, h, w = frames.shape
@@ -379,25 +421,25 @@ def moving_masks(frames: np.ndarray, homographies: np.ndarray, *, factor: int | 
 
     smooth = [smoothed(f) for f in frames]  # one full-size blurred frame at a time
     track = [to_uint8(f, lo, hi) for f in smooth]  # tracking_image without blurring twice
-    grid = np.stack(np.meshgrid(np.arange(size[0], dtype=np.float32), np.arange(size[1], dtype=np.float32)), axis=-1)
+    grid = np.stack(np.meshgrid(np.arange(size[0], dtype=np.float64), np.arange(size[1], dtype=np.float64)), axis=-1)
     dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
     limit = MASK_FLOW_PX * min(sx, sy)
+    motion = as_warp(motion).conjugate(np.linalg.inv(to_reduced))
+    region = (0, 0, size[1], size[0])
 
-    def departs(a: int, b: int, H_ab: np.ndarray) -> np.ndarray:
-        """Pixels of frame a whose content is not where ``H_ab`` says frame b sees it."""
-        H_ab = to_reduced @ H_ab @ np.linalg.inv(to_reduced)
+    def departs(a: int, b: int) -> np.ndarray:
+        """Pixels of frame a whose content is not where the motion says frame b sees it."""
+        M = motion.pair(a, b, region)
         flow = dis.calc(track[a], track[b], None)
-        expected = cv2.perspectiveTransform(grid.reshape(-1, 1, 2), H_ab).reshape(grid.shape) - grid
-        seen = cv2.warpPerspective(smooth[b], H_ab, size, flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                                   borderMode=cv2.BORDER_REFLECT)
-        diff = np.abs(smooth[a] - seen)
+        expected = positions(M, (size[1], size[0])) - grid
+        diff = np.abs(smooth[a] - sample(smooth[b], M, (size[1], size[0]), kernel="bilinear"))
         sigma = 1.4826 * float(np.median(diff))
         return (np.linalg.norm(flow - expected, axis=-1) > limit) & (diff > MASK_SIGMAS * sigma)
 
     reduced = np.zeros((n, size[1], size[0]), np.uint8)
     for t in range(1, n):
-        reduced[t] = departs(t, 0, np.linalg.inv(homographies[t]))
-        reduced[0] |= departs(0, t, homographies[t])
+        reduced[t] = departs(t, 0)
+        reduced[0] |= departs(0, t)
     grow = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * MASK_GROW_PX + 1,) * 2)
     out = np.empty((n, h, w), bool)
     for t in range(n):

@@ -28,8 +28,9 @@ from .fpnmodel import select_model
 from .io import (ATTR_CFA, ATTR_SATURATION, Frame, atomic_output, check_consistent, check_out_dir, find_frames,
                  read_exr_planes, read_frame, staged_directory, write_exr, write_text)
 from .metrics import mse, residual_fpn_percent
-from .motion import estimate_global_motion, moving_masks, positions_from_homography
+from .motion import estimate_motion, moving_masks
 from .solver import SolveOptions
+from .warp import positions as warp_positions
 from .warp import sample, valid_samples
 
 #: progress(stage, total) -> update(n): the CLI's tqdm, or nothing
@@ -99,16 +100,6 @@ def _motion_images(frames: np.ndarray, cfa: str | None) -> tuple[np.ndarray, np.
     return frames.mean(axis=3), np.eye(3)
 
 
-def _conjugate(H: np.ndarray, S: np.ndarray) -> np.ndarray:
-    """The homography ``H`` (frame pixels) expressed in the pixels that ``S`` maps to frame pixels."""
-    return np.linalg.inv(S) @ H @ S
-
-
-def _in_frame_pixels(homographies: np.ndarray, S_motion: np.ndarray) -> np.ndarray:
-    """Motion estimated on images whose pixels ``S_motion`` maps to frame pixels, in frame pixels."""
-    return np.array([_conjugate(H, np.linalg.inv(S_motion)) for H in homographies])
-
-
 def estimate(burst: LoadedBurst, cfg: Config, *, progress: Progress | None = None) -> Estimate:
     """Motion, solve and FPN model for every plane; the hold-out check; a report."""
     timings: dict[str, float] = {}
@@ -123,25 +114,27 @@ def estimate(burst: LoadedBurst, cfg: Config, *, progress: Progress | None = Non
     t0 = time.perf_counter()
     motion_images, S_motion = _motion_images(frames, burst.cfa)
     update = progress("motion", len(frames) - 1) if progress else None
-    motion = estimate_global_motion(motion_images, model=cfg.motion.model, progress=update)
-    H_frame = _in_frame_pixels(motion.homographies, S_motion)
-    solve_frames, moving = _mask_moving(frames, motion_images, motion.homographies, burst.cfa, cfg)
+    motion = estimate_motion(motion_images, model=cfg.motion.model, progress=update)
+    in_frame = motion.warp.conjugate(np.linalg.inv(S_motion))  # the motion in frame pixels
+    solve_frames, moving = _mask_moving(frames, motion_images, motion.warp, burst.cfa, cfg)
     timings["motion_s"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     n_fit = len(fit_frames)
-    k, confidence, plane_reports = _solve_planes(burst, solve_frames[:n_fit], H_frame[:n_fit], cfg, progress)
+    fit = in_frame.select(range(n_fit))
+    k, confidence, plane_reports = _solve_planes(burst, solve_frames[:n_fit], fit, cfg, progress)
     for _ in range(cfg.motion.refine_rounds):
         corrected, _ = _motion_images(frames * k[None], burst.cfa)
-        motion = estimate_global_motion(corrected, model=motion.model)
-        H_frame = _in_frame_pixels(motion.homographies, S_motion)
-        solve_frames, moving = _mask_moving(frames, corrected, motion.homographies, burst.cfa, cfg)
-        k, confidence, plane_reports = _solve_planes(burst, solve_frames[:n_fit], H_frame[:n_fit], cfg, progress)
+        motion = estimate_motion(corrected, model=motion.model)
+        in_frame = motion.warp.conjugate(np.linalg.inv(S_motion))
+        solve_frames, moving = _mask_moving(frames, corrected, motion.warp, burst.cfa, cfg)
+        fit = in_frame.select(range(n_fit))
+        k, confidence, plane_reports = _solve_planes(burst, solve_frames[:n_fit], fit, cfg, progress)
     timings["solve_s"] = time.perf_counter() - t0
 
     holdout_report = None
     if holdout:
-        ratio = _holdout_ratio(burst, solve_frames, H_frame, k)
+        ratio = _holdout_ratio(burst, solve_frames, in_frame, k)
         holdout_report = {"frame": burst.paths[order[-1]].name, "residual_ratio": ratio, "passed": ratio < 1.0}
         if ratio >= 1.0:
             warnings.append(f"the estimate does not reduce the brightness-constancy residual on the held-out frame "
@@ -175,12 +168,12 @@ def estimate(burst: LoadedBurst, cfg: Config, *, progress: Progress | None = Non
     return Estimate(k.astype(np.float32), confidence.astype(np.float32), report, warnings)
 
 
-def _mask_moving(frames, motion_images, homographies, cfa, cfg) -> tuple[np.ndarray, np.ndarray | None]:
-    """Frames with the pixels that do not follow the global motion set to 0 (which
+def _mask_moving(frames, motion_images, warp, cfa, cfg) -> tuple[np.ndarray, np.ndarray | None]:
+    """Frames with the pixels that do not follow the estimated motion set to 0 (which
     every solver leaves out, as it does dark pixels), and those pixels' masks."""
     if not cfg.motion.mask_moving:
         return frames, None
-    masks = moving_masks(motion_images, homographies)
+    masks = moving_masks(motion_images, warp)
     if cfa:  # grey-proxy pixel (y, x) is the CFA cell of photosites (2y.., 2x..)
         masks = np.repeat(np.repeat(masks, 2, axis=1), 2, axis=2)
         pad = [(0, 0), (0, frames.shape[1] - masks.shape[1]), (0, frames.shape[2] - masks.shape[2])]
@@ -188,24 +181,25 @@ def _mask_moving(frames, motion_images, homographies, cfa, cfg) -> tuple[np.ndar
     return np.where(masks[..., None], np.float32(0), frames), masks
 
 
-def _solve_planes(burst, frames, H_frame, cfg, progress):
+def _solve_planes(burst, frames, in_frame, cfg, progress):
     k = np.ones(frames.shape[1:], np.float64)
     confidence = np.zeros(frames.shape[1:], np.float64)
     reports = {}
     for name, pick, S in _planes(burst):
-        H_plane = np.array([_conjugate(H, S) for H in H_frame])
-        result, info = _solve_plane(pick(frames), H_plane, burst.saturation, cfg, progress, name)
+        result, info = _solve_plane(pick(frames), in_frame.conjugate(S), burst.saturation, cfg, progress, name)
         pick(k)[...] = result.k
         pick(confidence)[...] = result.confidence
         reports[name] = info
     return k, confidence, reports
 
 
-def _solve_plane(frames, H, saturation, cfg, progress, name) -> tuple[GainResult, dict]:
+def _solve_plane(frames, motion, saturation, cfg, progress, name) -> tuple[GainResult, dict]:
     s = cfg.solver
     update = progress(f"solve {name}", 0) if progress else None
     if s.method == "paper":
-        positions = np.stack([positions_from_homography(h, frames.shape[1:]) for h in H[1:]])
+        region = (0, 0) + frames.shape[1:]
+        positions = np.stack([warp_positions(motion.pair(0, t, region), frames.shape[1:])
+                              for t in range(1, len(frames))])
         options = SolveOptions(lam=s.lam, max_condition=s.max_condition, k_range=s.gain_range)
         result = solve_paper(frames, positions, block_size=s.block_size, options=options, saturation=saturation,
                              workers=s.workers, progress=update)
@@ -213,21 +207,22 @@ def _solve_plane(frames, H, saturation, cfg, progress, name) -> tuple[GainResult
     options = AccurateOptions(kernel=s.interpolation, anchors=s.anchors, partners=s.partners, rtol=s.rtol,
                               gauge_sigma=s.gauge_sigma, tile=s.tile,
                               robust_rounds=s.robust_rounds, gain_range=s.gain_range)
-    result = solve_accurate(frames, H, options=options, saturation=saturation, workers=s.workers, progress=update)
+    result = solve_accurate(frames, motion, options=options, saturation=saturation, workers=s.workers,
+                            progress=update)
     model = select_model(result.k, result.confidence, force=None if s.fpn_model == "auto" else s.fpn_model)
     info = {"method": "accurate", **result.stats, "fpn_model": model.chosen,
             "fpn_model_aic": model.scores, "input_fpn_percent": model.split}
     return GainResult(model.k, result.confidence, result.stats), info
 
 
-def _holdout_ratio(burst, frames, H_frame, k) -> float:
+def _holdout_ratio(burst, frames, in_frame, k) -> float:
     """Brightness-constancy residual of the held-out frame against the reference, with k over without."""
     num = den = 0.0
     sat = np.inf if burst.saturation is None else burst.saturation
     for _, pick, S in _planes(burst):
         ref, held, kp = pick(frames[0]), pick(frames[-1]), pick(k)
-        M = _conjugate(H_frame[-1], S)
         shape = ref.shape
+        M = in_frame.conjugate(S).pair(0, len(frames) - 1, (0, 0) + shape)
         valid = valid_samples((held > 0) & (held < sat), M, shape) & (ref > 0) & (ref < sat)
         with_k = kp * ref - sample(kp * held, M, shape)
         without = ref - sample(held, M, shape)

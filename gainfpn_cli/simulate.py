@@ -62,6 +62,8 @@ class Shake:
     perspective: float = 0.0  # sigma of the projective terms, 1/px
     wobble_px: float = 0.0  # sigma of a rolling-shutter wobble's amplitude, px (no single warp explains it)
     wobble_cycles: float = 1.5  # its periods over the frame height
+    distortion_px: float = 0.0  # sigma of a smooth 2-D distortion's amplitude per axis, px (parallax, lens)
+    distortion_cycles: float = 1.0  # its periods over the frame's longer side
 
 
 #: Named sensors: the paper's, and a 12-bit RGGB camera for DNG bursts.
@@ -90,6 +92,9 @@ class Burst:
     moving : ndarray of bool, shape (F, H, W), optional
         Pixels of each frame that see some of the moving object (in that
         frame's own coordinates); None without one.
+    waves : ndarray, shape (F, K, 5), optional
+        Motion no single warp explains (see :func:`wave_parameters`); None
+        without any. :meth:`positions` includes it.
     """
 
     frames: np.ndarray
@@ -98,7 +103,7 @@ class Burst:
     homographies: np.ndarray
     sensor: Sensor
     moving: np.ndarray | None = None
-    wobble: np.ndarray | None = None
+    waves: np.ndarray | None = None
 
     @property
     def saturation(self) -> int:
@@ -106,14 +111,22 @@ class Burst:
         return self.sensor.white_level - self.sensor.black_level
 
     def positions(self, t: int) -> np.ndarray:
-        """Where frame t sees every reference pixel: ``(H, W, 2)`` float64 ``(x, y)``, wobble included."""
+        """Where frame t sees every reference pixel: ``(H, W, 2)`` float64 ``(x, y)``, waves included."""
         from .motion import positions_from_homography
 
         pos = positions_from_homography(self.homographies[t], self.frames.shape[1:])
-        if self.wobble is not None:
-            rows = np.arange(self.frames.shape[1], dtype=np.float64)[:, None]  # the reference's y
-            pos[..., 0] += wobble_shift(self.wobble[t], rows)
-        return pos
+        if self.waves is None or not np.any(self.waves[t, :, 1]):
+            return pos
+        q = pos.copy()
+        for _ in range(WAVE_ITERATIONS):  # q = H p + shift(q): a contraction for gentle waves
+            q = pos + np.stack(wave_shift(self.waves[t], q[..., 0], q[..., 1]), axis=-1)
+        return q
+
+
+#: Fixed-point iterations of ``q = H p + shift(q)`` in :meth:`Burst.positions`;
+#: each shrinks the error by the shift's slope (2 pi A / L, 0.04 for a 1 px
+#: wave of 160 px): far below float precision after these.
+WAVE_ITERATIONS = 30
 
 
 def shake_homographies(n_frames: int, shape: tuple[int, int], shake: Shake, rng: np.random.Generator) -> np.ndarray:
@@ -137,26 +150,42 @@ def shake_homographies(n_frames: int, shape: tuple[int, int], shake: Shake, rng:
     return out
 
 
-def wobble_parameters(n_frames: int, shape: tuple[int, int], shake: Shake, rng: np.random.Generator) -> np.ndarray | None:
-    """Per frame ``(amplitude px, phase rad, wavelength px)`` of the wobble, or None without one.
+def wave_parameters(n_frames: int, shape: tuple[int, int], shake: Shake, rng: np.random.Generator) -> np.ndarray | None:
+    """Per frame and wave ``(axis, amplitude px, angle rad, phase rad, wavelength px)``, or None without waves.
 
-    Frame t sees reference point ``(x, y)`` at ``H_t (x, y) + (A sin(2 pi y / L + phi), 0)``:
-    a shear that oscillates down the frame, as a rolling shutter records a
-    vibrating camera. The reference has none.
+    Frame t sees reference point ``p`` at ``q = H_t p + shift(q)``, the sum
+    over waves of ``A sin(2 pi (q_x cos a + q_y sin a) / L + phi)`` along
+    ``axis`` (0: x, 1: y). A rolling-shutter wobble is one horizontal wave
+    down the rows (``a = pi / 2``), as a shutter that reads row ``q_y`` at
+    its own time records a vibrating camera; a distortion is one wave per
+    axis in random directions, a smooth 2-D stand-in for parallax or a
+    change of lens distortion. The reference has none.
     """
-    if shake.wobble_px <= 0:
-        return None
-    out = np.zeros((n_frames, 3))
-    out[:, 2] = shape[0] / shake.wobble_cycles
-    out[1:, 0] = rng.normal(0.0, shake.wobble_px, n_frames - 1)
-    out[1:, 1] = rng.uniform(0, 2 * np.pi, n_frames - 1)
-    return out
+    h, w = shape
+    waves = []
+    if shake.wobble_px > 0:
+        wobble = np.zeros((n_frames, 5))
+        wobble[:, 2], wobble[:, 4] = np.pi / 2, h / shake.wobble_cycles
+        wobble[1:, 1] = rng.normal(0.0, shake.wobble_px, n_frames - 1)
+        wobble[1:, 3] = rng.uniform(0, 2 * np.pi, n_frames - 1)
+        waves.append(wobble)
+    if shake.distortion_px > 0:
+        for axis in (0, 1):
+            wave = np.zeros((n_frames, 5))
+            wave[:, 0], wave[:, 4] = axis, max(h, w) / shake.distortion_cycles
+            wave[1:, 1] = rng.normal(0.0, shake.distortion_px, n_frames - 1)
+            wave[1:, 2] = rng.uniform(0, np.pi, n_frames - 1)
+            wave[1:, 3] = rng.uniform(0, 2 * np.pi, n_frames - 1)
+            waves.append(wave)
+    return np.stack(waves, axis=1) if waves else None
 
 
-def wobble_shift(parameters: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """The wobble's horizontal shift at reference row ``y``."""
-    amplitude, phase, wavelength = parameters
-    return amplitude * np.sin(2 * np.pi * y / wavelength + phase)
+def wave_shift(waves: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The shift ``(dx, dy)`` of one frame's ``waves`` ``(K, 5)`` at frame point ``(x, y)``."""
+    out = [np.zeros(np.broadcast(x, y).shape), np.zeros(np.broadcast(x, y).shape)]
+    for axis, amplitude, angle, phase, wavelength in waves:
+        out[int(axis)] += amplitude * np.sin(2 * np.pi * (x * np.cos(angle) + y * np.sin(angle)) / wavelength + phase)
+    return out[0], out[1]
 
 
 def procedural_scene(shape: tuple[int, int], rng: np.random.Generator, *, colour: bool = False) -> np.ndarray:
@@ -261,13 +290,13 @@ def _margin(homographies: np.ndarray, shape: tuple[int, int]) -> int:
 
 
 def render(scene: np.ndarray, H: np.ndarray, shape: tuple[int, int], *, scale: int, margin: int, supersample: int,
-           wobble: np.ndarray | None = None) -> np.ndarray:
+           waves: np.ndarray | None = None) -> np.ndarray:
     """Area-integrate the scene as seen by a frame with homography ``H`` (ref -> frame).
 
     Scene raster pixel ``j`` has its centre at reference coordinate
-    ``(j + 0.5) / scale - 0.5 - margin``. With ``wobble`` parameters (see
-    :func:`wobble_parameters`) the frame sees reference point ``p`` at
-    ``H p + shift(p)``; each sample's ``p`` is found by fixed-point iteration.
+    ``(j + 0.5) / scale - 0.5 - margin``. With ``waves`` (see
+    :func:`wave_parameters`) the frame sees reference point ``p`` at
+    ``q = H p + shift(q)``, so each sample ``q`` reads ``p = H^-1 (q - shift(q))``.
     """
     import cv2
 
@@ -279,20 +308,14 @@ def render(scene: np.ndarray, H: np.ndarray, shape: tuple[int, int], *, scale: i
     for dv in steps:
         for du in steps:
             X, Y = xs + du, ys + dv
+            if waves is not None:
+                dx, dy = wave_shift(waves, X, Y)
+                X, Y = X - dx, Y - dy
             px, py = _apply(Hinv, X, Y)
-            if wobble is not None and wobble[0] != 0:
-                for _ in range(WOBBLE_ITERATIONS):  # p = H^-1 (q - shift(p)): a contraction for gentle wobble
-                    px, py = _apply(Hinv, X - wobble_shift(wobble, py), Y)
             map_x = ((px + margin + 0.5) * scale - 0.5).astype(np.float32)
             map_y = ((py + margin + 0.5) * scale - 0.5).astype(np.float32)
             acc += cv2.remap(scene, map_x, map_y, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
     return np.clip(acc / supersample**2, 0.0, None)
-
-
-#: Fixed-point iterations that invert the wobble. The shift is horizontal and
-#: depends on y, so an iteration's error shrinks by about 2 pi A / L times the
-#: sine of the rotation: a few iterations reach float precision.
-WOBBLE_ITERATIONS = 8
 
 
 def _apply(H: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -341,8 +364,8 @@ def simulate_burst(
         raise ValueError(f"sensor.cfa must be a 2x2 RGB layout such as RGGB, got {sensor.cfa!r}")
     rng_scene, rng_motion, rng_gain, rng_noise = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(4))
     homographies = shake_homographies(n_frames, shape, shake, rng_motion)
-    wobble = wobble_parameters(n_frames, shape, shake, rng_motion)
-    margin = _margin(homographies, shape) + (0 if wobble is None else int(np.ceil(np.abs(wobble[:, 0]).max())))
+    waves = wave_parameters(n_frames, shape, shake, rng_motion)
+    margin = _margin(homographies, shape) + (0 if waves is None else int(np.ceil(np.abs(waves[:, :, 1]).sum(1).max())))
     scale = 2
     raster_shape = ((h + 2 * margin) * scale, (w + 2 * margin) * scale)
     colour = sensor.cfa is not None
@@ -365,7 +388,7 @@ def simulate_burst(
     moving = None if obj is None else np.zeros((n_frames, h, w), bool)
     full_scale_dn = float(sensor.white_level - sensor.black_level)
     for t in range(n_frames):
-        view = dict(scale=scale, margin=margin, supersample=supersample, wobble=None if wobble is None else wobble[t])
+        view = dict(scale=scale, margin=margin, supersample=supersample, waves=None if waves is None else waves[t])
         light = render(raster, homographies[t], shape, **view)
         if obj is not None:  # the object is recorded by the same (rolling) shutter
             texture, alpha, offsets = obj
@@ -384,7 +407,7 @@ def simulate_burst(
         counts = np.floor(np.clip(signal, 0.0, sensor.full_well_e) * sensor.dn_per_e + 0.5) + sensor.black_level
         frames[t] = np.clip(counts, 0, sensor.white_level)
     return Burst(frames=frames, gain=gain, ideal=ideal, homographies=homographies, sensor=sensor, moving=moving,
-                 wobble=wobble)
+                 waves=waves)
 
 
 def _moving_object(raster, fraction, n_frames, shape, scale, margin, rng):

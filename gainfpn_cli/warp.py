@@ -1,9 +1,11 @@
-"""Resampling one frame onto another's pixel grid through a homography.
+"""Resampling one frame onto another's pixel grid: ``dst(q) = src(M q)``.
 
-OpenCV's ``warpPerspective`` with ``WARP_INVERSE_MAP`` computes
-``dst(q) = src(M q)`` without building coordinate maps. Its sub-pixel
-positions are quantised to 1/32 px (RMS position error 0.009 px), well below
-the 0.05 px the motion estimate is allowed.
+``M`` is a 3x3 homography, or a float32 ``(h, w, 2)`` map holding ``M q``
+for every ``q`` (a field motion model, :mod:`trajectory`). OpenCV's
+``warpPerspective`` with ``WARP_INVERSE_MAP`` does the first without
+building coordinate maps, ``remap`` the second. Both quantise sub-pixel
+positions to 1/32 px (RMS position error 0.009 px), well below the 0.05 px
+the motion estimate is allowed.
 """
 
 from __future__ import annotations
@@ -27,13 +29,32 @@ def _flag(kernel: str) -> int:
         raise ValueError(f"kernel must be one of {', '.join(KERNELS)}, got {kernel!r}") from None
 
 
-def sample(image: np.ndarray, M: np.ndarray, shape: tuple[int, int], *, kernel: str = "lanczos4") -> np.ndarray:
-    """``out[q] = image(M @ q)`` for every pixel ``q`` of a ``shape`` grid (float32)."""
+def _resample(image: np.ndarray, M: np.ndarray, shape: tuple[int, int], flag: int, border: int) -> np.ndarray:
     import cv2
 
     h, w = shape
-    return cv2.warpPerspective(np.asarray(image, np.float32), np.asarray(M, np.float64), (w, h),
-                               flags=_flag(kernel) | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REFLECT)
+    if M.shape == (3, 3):
+        return cv2.warpPerspective(image, np.asarray(M, np.float64), (w, h), flags=flag | cv2.WARP_INVERSE_MAP,
+                                   borderMode=border, borderValue=0)
+    if M.shape != (h, w, 2):
+        raise ValueError(f"M must be 3x3 or a map of shape {(h, w, 2)}, got {M.shape}")
+    return cv2.remap(image, np.asarray(M, np.float32), None, flag, borderMode=border, borderValue=0)
+
+
+def sample(image: np.ndarray, M: np.ndarray, shape: tuple[int, int], *, kernel: str = "lanczos4") -> np.ndarray:
+    """``out[q] = image(M q)`` for every pixel ``q`` of a ``shape`` grid (float32)."""
+    import cv2
+
+    return _resample(np.asarray(image, np.float32), M, shape, _flag(kernel), cv2.BORDER_REFLECT)
+
+
+def positions(M: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """``M q`` for every pixel ``q`` of a ``shape`` grid: float64 ``(h, w, 2)``."""
+    if M.shape != (3, 3):
+        return np.asarray(M, np.float64)
+    from .motion import positions_from_homography
+
+    return positions_from_homography(M, shape)
 
 
 def valid_samples(good: np.ndarray, M: np.ndarray, shape: tuple[int, int], *, kernel: str = "lanczos4") -> np.ndarray:
@@ -49,10 +70,7 @@ def valid_samples(good: np.ndarray, M: np.ndarray, shape: tuple[int, int], *, ke
     ok = np.asarray(good, np.uint8)
     ok = cv2.erode(ok, np.ones((2 * radius + 1, 2 * radius + 1), np.uint8), borderType=cv2.BORDER_CONSTANT,
                    borderValue=0)
-    h, w = shape
-    out = cv2.warpPerspective(ok, np.asarray(M, np.float64), (w, h), flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
-                              borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-    return out > 0
+    return _resample(ok, M, shape, cv2.INTER_NEAREST, cv2.BORDER_CONSTANT) > 0
 
 
 def low_pass(image: np.ndarray, sigma: float, mask: np.ndarray | None = None) -> np.ndarray:

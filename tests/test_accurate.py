@@ -187,8 +187,10 @@ def test_every_kernel_runs_and_helps(kernel):
 def test_validates():
     with pytest.raises(ValueError, match="frames must have shape"):
         solve_accurate(np.zeros((1, 8, 8)), np.eye(3)[None])
-    with pytest.raises(ValueError, match="homographies must be finite"):
+    with pytest.raises(ValueError, match="motion is given for 1 frames, there are 2"):
         solve_accurate(np.zeros((2, 8, 8)), np.eye(3)[None])
+    with pytest.raises(ValueError, match="homographies must be finite"):
+        solve_accurate(np.zeros((2, 8, 8)), np.full((2, 3, 3), np.nan))
     with pytest.raises(ValueError, match="kernel must be"):
         solve_accurate(np.zeros((2, 8, 8)), np.stack([np.eye(3)] * 2), options=AccurateOptions(kernel="sinc"))
 

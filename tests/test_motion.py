@@ -3,7 +3,7 @@ import pytest
 
 from gainfpn_cli.errors import EstimationError
 from gainfpn_cli.motion import (
-    estimate_global_motion,
+    estimate_motion,
     moving_masks,
     positions_from_flow,
     positions_from_homography,
@@ -57,7 +57,7 @@ def test_global_warp_is_sub_pixel_accurate_despite_fpn(seed, shake):
     # issue 4: RMS trajectory error <= 0.05 px with 5 % gain FPN, asserted on
     # the worst frame of the burst
     burst = simulate_burst(shape=SHAPE, n_frames=6, seed=seed, shake=shake)
-    result = estimate_global_motion(burst.frames.astype(np.float32))
+    result = estimate_motion(burst.frames.astype(np.float32))
     assert _worst(burst, result) <= 0.05
     np.testing.assert_array_equal(result.homographies[0], np.eye(3))
 
@@ -67,7 +67,7 @@ def test_global_warp_on_dead_leaves_is_sub_pixel_accurate(shake):
     # issue 4's 0.05 px on the scene with sharp edges at every scale; seeds 3-10
     # measured worst frame 0.033 px over 24 bursts, held-out seed 11 0.014-0.019 px
     burst = simulate_burst(shape=SHAPE, n_frames=6, seed=11, shake=shake, scene="dead-leaves")
-    assert _worst(burst, estimate_global_motion(burst.frames.astype(np.float32))) <= 0.05
+    assert _worst(burst, estimate_motion(burst.frames.astype(np.float32))) <= 0.05
 
 
 @pytest.mark.parametrize("seed, shake, limit", [(5, Shake(), 0.05), (6, Shake(), 0.05), (7, DRIFT, 0.1)],
@@ -79,7 +79,7 @@ def test_a_moving_object_does_not_move_the_global_warp(seed, shake, limit):
     # 96 background ones and missed by 29 px), 0.032 / 0.063 px.
     burst = simulate_burst(shape=SHAPE, n_frames=6, seed=seed, shake=shake, moving_object=0.1)
     assert burst.moving.mean() == pytest.approx(0.1, abs=0.02)
-    result = estimate_global_motion(burst.frames.astype(np.float32))
+    result = estimate_motion(burst.frames.astype(np.float32))
     assert _worst(burst, result) <= limit
 
 
@@ -93,36 +93,36 @@ def test_a_moving_object_does_not_move_the_global_warp(seed, shake, limit):
 )
 def test_the_simplest_model_the_motion_needs_is_chosen(shake, expected):
     burst = simulate_burst(shape=SHAPE, n_frames=6, seed=7, shake=shake)
-    result = estimate_global_motion(burst.frames.astype(np.float32))
+    result = estimate_motion(burst.frames.astype(np.float32))
     assert result.model == expected, result.reason
     assert "GRIC" in result.reason
 
 
 def test_a_forced_model_is_used():
     burst = simulate_burst(shape=SHAPE, n_frames=4, seed=7, shake=Shake(rotation_deg=0.0))
-    result = estimate_global_motion(burst.frames.astype(np.float32), model="homography")
+    result = estimate_motion(burst.frames.astype(np.float32), model="homography")
     assert result.model == "homography" and result.reason == "forced by configuration"
     with pytest.raises(ValueError, match="model must be auto or one of"):
-        estimate_global_motion(burst.frames.astype(np.float32), model="flow-ish")
+        estimate_motion(burst.frames.astype(np.float32), model="flow-ish")
 
 
 def test_textureless_reference_is_an_error():
     frames = np.full((3, 60, 80), 100.0, np.float32)
     with pytest.raises(EstimationError, match="no texture to track"):
-        estimate_global_motion(frames)
+        estimate_motion(frames)
 
 
 def test_frames_of_unrelated_scenes_are_an_error():
     a = simulate_burst(shape=SHAPE, n_frames=1, seed=1).frames[0]
     b = simulate_burst(shape=SHAPE, n_frames=1, seed=2).frames[0]
     with pytest.raises(EstimationError, match=r"frame 1: .*(points|inliers)"):
-        estimate_global_motion(np.stack([a, b]).astype(np.float32))
+        estimate_motion(np.stack([a, b]).astype(np.float32))
 
 
 def test_a_still_burst_is_reported():
     burst = simulate_burst(shape=SHAPE, n_frames=4, seed=9, shake=Shake(translation_px=0.0, rotation_deg=0.0))
     with pytest.raises(EstimationError, match="no motion"):
-        estimate_global_motion(burst.frames.astype(np.float32))
+        estimate_motion(burst.frames.astype(np.float32))
 
 
 def _assert_masks_find_the_object(masks, burst, *, textured_found):

@@ -1,0 +1,195 @@
+"""Where each frame sees what another frame sees: the motion models as maps.
+
+Two kinds, one interface. :class:`GlobalWarp` is one homography per frame
+(translation and affine are special cases). :class:`FieldWarp` adds a smooth
+displacement field per frame, in the frame's own pixels:
+
+    frame t sees reference point p at q, where  q = H_t p + r_t(q)
+
+``r_t`` is a cubic B-spline: of the row alone for a rolling shutter (each row
+is read at its own time, so its displacement depends on ``q_y``), or a
+tensor-product mesh over the frame for motion that varies smoothly in both
+directions. The map from a frame to the reference is direct,
+``p = H_t^-1 (q - r_t(q))``; the other way is a fixed-point iteration, a
+contraction wherever the field's slope is well below 1.
+
+Every map takes and returns ``(x, y)`` points. :meth:`pair` gives what the
+resamplers in :mod:`warp` take: a 3x3 matrix for a global warp (OpenCV's
+``warpPerspective``), an ``(h, w, 2)`` float32 map otherwise (``remap``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+DEGREE = 3
+#: Fixed-point iterations of ``q = H p + r(q)`` at most, and the change (px)
+#: at which they stop.
+TO_FRAME_ITERATIONS = 20
+TO_FRAME_TOL = 1e-4
+#: :meth:`FieldWarp.pair` computes its maps exactly every LATTICE px.
+LATTICE = 8
+
+
+def _apply(H: np.ndarray, points: np.ndarray) -> np.ndarray:
+    p = np.asarray(points, np.float64) @ H[:, :2].T + H[:, 2]
+    return p[..., :2] / p[..., 2:3]
+
+
+def _shifted(M: np.ndarray, region: tuple[int, int, int, int]) -> np.ndarray:
+    """A map between frame pixels expressed between the pixels of ``region = (y0, x0, h, w)``."""
+    y0, x0 = region[:2]
+    shift = np.array([[1.0, 0, x0], [0, 1.0, y0], [0, 0, 1.0]])
+    return np.linalg.inv(shift) @ M @ shift
+
+
+def _grid(region: tuple[int, int, int, int]) -> np.ndarray:
+    y0, x0, h, w = region
+    ys, xs = np.mgrid[y0 : y0 + h, x0 : x0 + w].astype(np.float64)
+    return np.stack([xs, ys], axis=-1)
+
+
+@dataclass(frozen=True)
+class GlobalWarp:
+    """``H_t_ref`` per frame (the reference's is the identity)."""
+
+    homographies: np.ndarray
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.homographies)
+
+    def matrix(self, s: int, t: int) -> np.ndarray:
+        """``M_st = H_t H_s^-1``: frame s pixel -> frame t pixel."""
+        return self.homographies[t] @ np.linalg.inv(self.homographies[s])
+
+    def map_points(self, s: int, t: int, points: np.ndarray) -> np.ndarray:
+        """Where frame t sees what frame s sees at ``points`` (``(..., 2)``)."""
+        return _apply(self.matrix(s, t), points)
+
+    def pair(self, s: int, t: int, region: tuple[int, int, int, int]) -> np.ndarray:
+        """:meth:`map_points` for the pixels of ``region = (y0, x0, h, w)`` of frame s, in the region's
+        coordinates, as a 3x3 matrix."""
+        return _shifted(self.matrix(s, t), region)
+
+    def conjugate(self, S: np.ndarray) -> "GlobalWarp":
+        """The same motion in pixels ``c`` with ``S c`` = these pixels (a CFA plane, a reduced frame)."""
+        S = np.asarray(S, np.float64)
+        return GlobalWarp(np.array([np.linalg.inv(S) @ H @ S for H in self.homographies]))
+
+    def select(self, frames) -> "GlobalWarp":
+        """The motion of a subset of the frames (the first must be the reference)."""
+        return GlobalWarp(self.homographies[list(frames)])
+
+
+@dataclass(frozen=True)
+class FieldWarp:
+    """Homographies plus a smooth displacement field per frame (see the module docstring).
+
+    Attributes
+    ----------
+    homographies : ndarray, shape (F, 3, 3)
+    coefficients : ndarray, shape (F, 2, ny, nx)
+        B-spline coefficients of ``r_t``'s x and y parts over ``ny - 3`` by
+        ``nx - 3`` uniform cells; ``nx == 1`` for a field of the row alone.
+    shape : (int, int)
+        ``(H, W)`` of the frames the field spans (its pixels: field pixels).
+    to_field : ndarray, shape (3, 3)
+        Maps the pixels this object speaks to field pixels (identity unless
+        :meth:`conjugate` made it).
+    """
+
+    homographies: np.ndarray
+    coefficients: np.ndarray
+    shape: tuple[int, int]
+    to_field: np.ndarray = None
+
+    def __post_init__(self):
+        if self.to_field is None:
+            object.__setattr__(self, "to_field", np.eye(3))
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.homographies)
+
+    def field(self, t: int, points: np.ndarray) -> np.ndarray:
+        """``r_t`` at field-pixel ``points`` ``(..., 2)``."""
+        c = self.coefficients[t]
+        by = basis(points[..., 1].ravel(), self.shape[0], c.shape[1] - DEGREE)
+        if c.shape[2] == 1:
+            out = by @ c[:, :, 0].T
+        else:
+            bx = basis(points[..., 0].ravel(), self.shape[1], c.shape[2] - DEGREE)
+            out = np.stack([np.einsum("ni,ij,nj->n", by, ci, bx) for ci in c], axis=1)
+        return out.reshape(points.shape)
+
+    def _to_reference(self, t: int, q: np.ndarray) -> np.ndarray:
+        return _apply(np.linalg.inv(self.homographies[t]), q - self.field(t, q))
+
+    def _to_frame(self, t: int, p: np.ndarray) -> np.ndarray:
+        start = _apply(self.homographies[t], p)
+        q = start
+        for _ in range(TO_FRAME_ITERATIONS):
+            nxt = start + self.field(t, q)
+            done = np.max(np.abs(nxt - q), initial=0.0) < TO_FRAME_TOL
+            q = nxt
+            if done:
+                break
+        return q
+
+    def map_points(self, s: int, t: int, points: np.ndarray) -> np.ndarray:
+        """Where frame t sees what frame s sees at ``points`` (``(..., 2)``)."""
+        f = _apply(self.to_field, points)
+        return _apply(np.linalg.inv(self.to_field), self._to_frame(t, self._to_reference(s, f)))
+
+    def pair(self, s: int, t: int, region: tuple[int, int, int, int]) -> np.ndarray:
+        """:meth:`map_points` for the pixels of ``region = (y0, x0, h, w)`` of frame s, in the region's
+        coordinates: float32 ``(h, w, 2)``.
+
+        The map is computed exactly on a lattice of every LATTICE-th pixel
+        and interpolated (bicubic) in between: it is smooth on that scale.
+        """
+        import cv2
+
+        y0, x0, h, w = region
+        ny, nx = (h - 1) // LATTICE + 2, (w - 1) // LATTICE + 2  # lattice reaching past the region's last pixel
+        if h < 2 * LATTICE or w < 2 * LATTICE:  # too small to gain from a lattice: exact
+            return (self.map_points(s, t, _grid(region)) - [x0, y0]).astype(np.float32)
+        lattice = np.stack(np.meshgrid(np.arange(nx) * float(LATTICE), np.arange(ny) * float(LATTICE)), axis=-1)
+        moved = (self.map_points(s, t, lattice + [x0, y0]) - [x0, y0] - lattice).astype(np.float32)
+        own = np.stack(np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32)), axis=-1)
+        at = own / LATTICE
+        return own + cv2.remap(moved, at[..., 0], at[..., 1], cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
+
+    def conjugate(self, S: np.ndarray) -> "FieldWarp":
+        """The same motion in pixels ``c`` with ``S c`` = these pixels."""
+        return FieldWarp(self.homographies, self.coefficients, self.shape, self.to_field @ np.asarray(S, np.float64))
+
+    def select(self, frames) -> "FieldWarp":
+        frames = list(frames)
+        return FieldWarp(self.homographies[frames], self.coefficients[frames], self.shape, self.to_field)
+
+
+def basis(coords: np.ndarray, length: int, cells: int) -> np.ndarray:
+    """Cubic B-spline basis on ``cells`` uniform cells over pixel centres ``-0.5 .. length - 0.5``.
+
+    Returns dense ``(n, cells + 3)``; coordinates outside take the value at the edge.
+    """
+    from scipy.interpolate import BSpline
+
+    step = length / cells
+    knots = -0.5 + step * np.arange(-DEGREE, cells + DEGREE + 1)
+    x = np.clip(np.asarray(coords, np.float64), -0.5, length - 0.5 - 1e-9 * length)
+    return BSpline.design_matrix(x, knots, DEGREE).toarray()
+
+
+def as_warp(motion) -> GlobalWarp | FieldWarp:
+    """A warp object from a warp object or an ``(F, 3, 3)`` array of homographies."""
+    if isinstance(motion, (GlobalWarp, FieldWarp)):
+        return motion
+    H = np.asarray(motion, np.float64)
+    if H.ndim != 3 or H.shape[1:] != (3, 3) or not np.all(np.isfinite(H)):
+        raise ValueError(f"homographies must be finite with shape (F, 3, 3), got {H.shape}")
+    return GlobalWarp(H)
