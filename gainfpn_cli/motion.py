@@ -346,7 +346,9 @@ def _fit_frame(src, dst, shape, candidates) -> tuple[dict, dict]:
         if name in candidates:
             fits[name] = fit_field(src, dst, globals_["homography"], shape, name)
             residuals[name] = field_residuals(fits[name], src, dst, shape)
-            used[name], params[name] = fits[name].keep, fits[name].dof
+            # a fit with too few points keeps none: judge it on all
+            used[name] = fits[name].keep if fits[name].keep.any() else np.ones(len(src), bool)
+            params[name] = fits[name].dof
     # the tracking noise: the smallest any candidate reaches on the points it keeps
     sigma2 = max(min(_noise_variance(residuals[m][used[m]]) for m in candidates), 1e-8)
     scores = gric({m: residuals[m] for m in candidates}, params, sigma2)

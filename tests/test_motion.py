@@ -180,3 +180,43 @@ def test_coarse_shift_of_a_large_frame_is_measured_reduced():
     assert ref.size > COARSE_PIXELS * 2
     moved = scene[40 + 13 : 1240 + 13, 40 - 37 : 1640 - 37]  # content moves by (+37, -13)
     np.testing.assert_allclose(coarse_shift(ref, moved), [37, -13], atol=0.5)
+
+
+def _worst_field(burst, result):
+    """Worst frame's RMS trajectory error (px) of any warp against the simulator's exact positions,
+    over the pixels the moving object never covers."""
+    ys, xs = np.mgrid[0 : SHAPE[0] : 4, 0 : SHAPE[1] : 4]
+    points = np.stack([xs, ys], axis=-1).astype(np.float64)
+    still = np.ones(xs.shape, bool) if burst.moving is None else ~burst.moving.any(axis=0)[::4, ::4]
+    errors = [np.sum((result.warp.map_points(0, t, points) - burst.positions(t)[::4, ::4]) ** 2, axis=-1)[still]
+              for t in range(1, len(burst.frames))]
+    return max(float(np.sqrt(np.mean(e))) for e in errors)
+
+
+@pytest.mark.parametrize(
+    "shake, moving_object, expected",
+    [(Shake(wobble_px=0.5), 0.0, "rolling"), (Shake(wobble_px=0.5), 0.1, "rolling"),
+     (Shake(distortion_px=0.5), 0.0, "mesh")],
+    ids=["wobble", "wobble+object", "distortion"],
+)
+def test_motion_no_single_warp_explains_gets_a_field_model(shake, moving_object, expected):
+    # Seeds 3-10 (dead leaves, 200x260x6), worst frame: wobble 0.027-0.121 px,
+    # with a 10 % object 0.029-0.101, distortion 0.045-0.092; the field model
+    # was chosen every time. Held-out seed 11: 0.048, 0.061, 0.041 px. The
+    # best single homography is off by several times more.
+    burst = simulate_burst(shape=SHAPE, n_frames=6, seed=11, shake=shake, moving_object=moving_object,
+                           scene="dead-leaves")
+    frames = burst.frames.astype(np.float32)
+    result = estimate_motion(frames)
+    assert result.model == expected, result.reason
+    assert _worst_field(burst, result) <= 0.1
+    assert _worst_field(burst, estimate_motion(frames, model="homography")) > 3 * _worst_field(burst, result)
+
+
+def test_field_models_are_not_chosen_for_a_plain_shake():
+    # the global fits explain these points: the fields' extra parameters do not pay (GRIC)
+    for seed in (11, 12):
+        burst = simulate_burst(shape=SHAPE, n_frames=6, seed=seed, scene="dead-leaves")
+        result = estimate_motion(burst.frames.astype(np.float32))
+        assert result.model in ("translation", "affine", "homography"), result.reason
+        assert {"rolling", "mesh"} <= set(result.per_frame[0]["gric"])
