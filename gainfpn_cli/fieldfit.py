@@ -51,7 +51,7 @@ LAMBDAS = 10.0 ** np.arange(-6.0, 3.0)
 #: toward 0 (a mesh fit of 600 exact-to-0.02 px points: 0.015 px inside
 #: the frame, 0.06 px within 16 px of its edges, 0.23 px at a bare corner).
 RIDGE = 1e-4
-GAUSS_NEWTON = 5
+GAUSS_NEWTON = 2
 
 
 @dataclass(frozen=True)
@@ -120,7 +120,8 @@ def _homography_jacobian(hn: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, n
 
 
 def joint_fit(src: np.ndarray, dst: np.ndarray, H: np.ndarray, a: np.ndarray, penalty: np.ndarray,
-              shape: tuple[int, int], weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, float]:
+              shape: tuple[int, int], weights: np.ndarray | None = None, lambdas=LAMBDAS
+              ) -> tuple[np.ndarray, np.ndarray, float, float]:
     """``H`` and field coefficients ``c`` ``(m, 2)`` minimising
     ``sum_i w_i |H src_i + a_i c - dst_i|^2 + lam c^T P c + eps |c|^2``.
 
@@ -128,7 +129,8 @@ def joint_fit(src: np.ndarray, dst: np.ndarray, H: np.ndarray, a: np.ndarray, pe
     what the other explains as well (a constant or linear field is a change
     of ``H``: the faint ridge ``eps`` gives it to ``H``). ``H`` is fitted in
     coordinates scaled to about [-1, 1]; ``lam`` is chosen by generalised
-    cross-validation at each step. Returns ``(H, c, hat-matrix trace)``.
+    cross-validation among ``lambdas`` at each step. Returns
+    ``(H, c, hat-matrix trace, lam)``.
     """
     n, m = a.shape
     half = max(shape) / 2.0
@@ -151,7 +153,7 @@ def joint_fit(src: np.ndarray, dst: np.ndarray, H: np.ndarray, a: np.ndarray, pe
         resid = (root[:, :, 0] * (half * moved + [shape[1] / 2, shape[0] / 2] + a @ coef - dst)).reshape(-1)
         jtj, jtr = jac.T @ jac, jac.T @ resid
         best = None
-        for lam in LAMBDAS:
+        for lam in lambdas:
             block = lam * rough + RIDGE * scale * np.eye(m)
             reg = np.zeros_like(jtj)
             reg[8 : 8 + m, 8 : 8 + m] = reg[8 + m :, 8 + m :] = block
@@ -161,14 +163,14 @@ def joint_fit(src: np.ndarray, dst: np.ndarray, H: np.ndarray, a: np.ndarray, pe
             rss = float(np.sum((resid + jac @ step) ** 2))
             gcv = 2 * n * rss / max(2 * n - tr, 1e-3) ** 2
             if best is None or gcv < best[0]:
-                best = (gcv, step, tr)
-        _, step, trace = best
+                best = (gcv, step, tr, lam)
+        _, step, trace, chosen = best
         hn = hn + step[:8]
         coef = coef + step[8:].reshape(2, m).T
         if np.max(np.abs(step[8:])) < 1e-5 and np.max(np.abs(half * step[:8])) < 1e-5:
             break
     H = np.linalg.inv(T) @ np.append(hn, 1.0).reshape(3, 3) @ T
-    return H / H[2, 2], coef, trace
+    return H / H[2, 2], coef, trace, chosen
 
 
 def fit_field(src: np.ndarray, dst: np.ndarray, H0: np.ndarray, shape: tuple[int, int], model: str) -> FieldFit:
@@ -182,15 +184,19 @@ def fit_field(src: np.ndarray, dst: np.ndarray, H0: np.ndarray, shape: tuple[int
     near = np.linalg.norm(_apply(H0, src) - dst, axis=1) < START_PX
     if near.sum() < max(m, 8) + 1:  # too few points to fit: the starting homography, no field, nothing kept
         return FieldFit(H0, np.zeros((2,) + _grid_shape(cells)), np.zeros(len(src), bool), 8.0)
-    H, weights = H0, near.astype(np.float64)
+    H, weights, lambdas = H0, near.astype(np.float64), LAMBDAS
     for _ in range(ROUNDS):  # iteratively reweighted: Cauchy weights on the residuals
-        H, coef, trace = joint_fit(src[near], dst[near], H, a_all[near], penalty, shape, weights[near])
+        # the penalty weight is chosen (GCV) in the first round and kept while the weights settle
+        H, coef, trace, lam = joint_fit(src[near], dst[near], H, a_all[near], penalty, shape, weights[near], lambdas)
+        lambdas = [lam]
         residual = np.linalg.norm(_apply(H, src) + a_all @ coef - dst, axis=1)
         sigma = np.sqrt(max(_noise_variance(residual[weights > 0.5]), 1e-10))
         updated = near / (1.0 + (residual / (CAUCHY * sigma)) ** 2)
         if np.max(np.abs(updated - weights)) < 0.01:
             break
         weights = updated
+    H, coef, trace, _ = joint_fit(src[near], dst[near], H, a_all[near], penalty, shape, weights[near])  # GCV again
+    residual = np.linalg.norm(_apply(H, src) + a_all @ coef - dst, axis=1)
     keep = residual < max(ROBUST_SIGMAS * sigma * np.sqrt(2), KEEP_FLOOR_PX)
     return FieldFit(H, coef.T.reshape((2,) + _grid_shape(cells)), keep, trace)
 
