@@ -38,11 +38,14 @@ class BurstSpec:
     scene: str = "dead-leaves"
     fpn_column: float = 0.0
     supersample: int = 4
+    wobble_px: float = 0.0
+    distortion_px: float = 0.0
 
     @property
     def key(self) -> str:
         h, w = self.shape
-        return f"{w}x{h}-f{self.n_frames}-s{self.seed}-{self.scene}-c{self.fpn_column:g}-ss{self.supersample}"
+        waves = f"-w{self.wobble_px:g}-d{self.distortion_px:g}" if self.wobble_px or self.distortion_px else ""
+        return f"{w}x{h}-f{self.n_frames}-s{self.seed}-{self.scene}-c{self.fpn_column:g}-ss{self.supersample}{waves}"
 
     @property
     def megapixels(self) -> float:
@@ -62,8 +65,19 @@ class Point:
     flow_error_px: float = 0.0
 
 
-def plan(quick: bool) -> list[Point]:
-    """The points of a quick (CI smoke, about a minute) or full run."""
+def plan(quick: bool, groups: tuple[str, ...] = ()) -> list[Point]:
+    """The points of a quick (CI smoke, about a minute) or full run; only those of ``groups`` if given."""
+    points = _all_points(quick)
+    if not groups:
+        return points
+    known = list(dict.fromkeys(p.group for p in points))
+    unknown = sorted(set(groups) - set(known))
+    if unknown:
+        raise ValueError(f"unknown bench group(s) {', '.join(unknown)}; the groups are {', '.join(known)}")
+    return [p for p in points if p.group in groups]
+
+
+def _all_points(quick: bool) -> list[Point]:
     # dead leaves: the photograph-like scene on which the published form gives its published ratio
     base = BurstSpec(shape=(120, 160), scene="dead-leaves") if quick else BurstSpec(shape=(480, 640), scene="dead-leaves")
     points = [Point("reference", "temporal-noise floor (true gains)", base, kind="floor"),
@@ -75,6 +89,7 @@ def plan(quick: bool) -> list[Point]:
                    for b in (3, 9)]
         points += [Point("flow_error", f"{e} px", base, kind="flow-error", flow_error_px=e) for e in (0.0, 0.8)]
         points += [Point("workers", "solver 1 vs 2 workers", base, kind="workers")]
+        points += [Point("motion_model", "wobble 1 px, auto", dataclasses.replace(base, wobble_px=1.0))]
         return points
     points += [Point("block_size", f"paper, {b}x{b}", base, preset="paper", overrides={"solver.block_size": b})
                for b in (1, 3, 9, 17, 33)]
@@ -85,7 +100,11 @@ def plan(quick: bool) -> list[Point]:
                for kernel in ("bilinear", "cubic", "lanczos4")]
     points += [Point("frames", f"{n} frames", dataclasses.replace(base, n_frames=n)) for n in (3, 5, 16)]
     points += [Point("motion_model", model, base, overrides={"motion.model": model})
-               for model in ("translation", "affine", "homography")]
+               for model in ("translation", "affine", "homography", "rolling", "mesh")]
+    for wave in ("wobble", "distortion"):  # motion no single warp explains: the model choice against a forced warp
+        burst = dataclasses.replace(base, **{f"{wave}_px": 1.0})
+        points += [Point("motion_model", f"{wave} 1 px, {model}", burst, overrides={"motion.model": model})
+                   for model in ("auto", "homography")]
     points += [Point("refine", "1 refinement round", base, overrides={"motion.refine_rounds": 1})]
     points += [Point("scene", "procedural (smoother)", dataclasses.replace(base, scene="procedural"))]
     points += [Point("scene", "3 % pixel + 4 % column", dataclasses.replace(base, fpn_column=0.04))]
@@ -107,13 +126,13 @@ def plan(quick: bool) -> list[Point]:
 # running
 
 
-def run(out_dir: Path, *, quick: bool, progress=None) -> list[dict]:
+def run(out_dir: Path, *, quick: bool, groups: tuple[str, ...] = (), progress=None) -> list[dict]:
     """Run every point of :func:`plan`; write results.json, results.md and plots into ``out_dir``."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     scratch = out_dir / "scratch"
     started = time.perf_counter()
-    points = plan(quick)
+    points = plan(quick, groups)
     results = []
     context = multiprocessing.get_context("spawn")
     try:
@@ -127,7 +146,7 @@ def run(out_dir: Path, *, quick: bool, progress=None) -> list[dict]:
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
     _add_derived(results)
-    summary = {"machine": _machine(), "quick": quick, "duration_s": time.perf_counter() - started, "points": results}
+    summary = {"machine": _machine(), "quick": quick, "groups": list(groups), "duration_s": time.perf_counter() - started, "points": results}
     (out_dir / "results.json").write_text(json.dumps(summary, indent=1))
     (out_dir / "results.md").write_text(markdown(summary))
     plot(summary, out_dir)
@@ -143,13 +162,13 @@ def _sensor(spec: BurstSpec):
 
 
 def _make_burst(spec: BurstSpec, folder: Path) -> None:
-    from .simulate import simulate_burst
+    from .simulate import Shake, simulate_burst
     from .truth import save_burst
 
     sensor = _sensor(spec)
-
+    shake = Shake(wobble_px=spec.wobble_px, distortion_px=spec.distortion_px)
     burst = simulate_burst(shape=spec.shape, n_frames=spec.n_frames, seed=spec.seed, scene=spec.scene,
-                           sensor=sensor, supersample=spec.supersample)
+                           sensor=sensor, supersample=spec.supersample, shake=shake)
     save_burst(burst, folder, fmt="exr", parameters=dataclasses.asdict(spec))
 
 

@@ -230,9 +230,11 @@ def evaluate(out_dir, sim_dir):
 @click.option("-o", "--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
               help="Directory for results.json, results.md and the plots.")
 @click.option("--quick", is_flag=True, help="A small set of points (about a minute): the CI smoke run.")
+@click.option("--group", "groups", multiple=True, metavar="NAME",
+              help="Only this group of points (repeatable), e.g. motion_model, preset, scaling_pixels.")
 @click.option("--overwrite", is_flag=True, help="Replace the results in a non-empty OUT.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
-def bench(out_dir, quick, overwrite, quiet):
+def bench(out_dir, quick, groups, overwrite, quiet):
     """Measure accuracy against time and memory on simulated bursts.
 
     Presets, knob sweeps, the paper's published form, a flat-field
@@ -243,15 +245,19 @@ def bench(out_dir, quick, overwrite, quiet):
     from .bench import plan, run
     from .io import check_out_dir, staged_directory
 
+    try:
+        points = plan(quick, groups)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc), param_hint="--group") from None
     check_out_dir(out_dir, overwrite)
     bar = None
     if not quiet:
         from tqdm import tqdm
 
-        bar = tqdm(total=len(plan(quick)), desc="bench", unit="point", leave=False, dynamic_ncols=True)
+        bar = tqdm(total=len(points), desc="bench", unit="point", leave=False, dynamic_ncols=True)
     try:
         with staged_directory(out_dir) as tmp:
-            run(tmp, quick=quick, progress=bar.update if bar else None)
+            run(tmp, quick=quick, groups=groups, progress=bar.update if bar else None)
     finally:
         if bar:
             bar.close()

@@ -14,7 +14,7 @@ def test_a_small_plan_runs_every_kind_of_point(tmp_path, monkeypatch):
               Point("reference", "flat field", base, kind="flat-field"),
               Point("preset", "fast", base, preset="fast"),
               Point("flow_error", "0.8 px", base, kind="flow-error", flow_error_px=0.8)]
-    monkeypatch.setattr(bench, "plan", lambda quick: points)
+    monkeypatch.setattr(bench, "plan", lambda quick, groups=(): points)
     rows = {r["label"]: r for r in bench.run(tmp_path, quick=True)}
     floor, flat, fast, flow = rows["floor"], rows["flat field"], rows["fast"], rows["0.8 px"]
     assert floor["residual_fpn_percent"] == pytest.approx(0.0, abs=1e-3)  # the true gains
@@ -37,3 +37,18 @@ def test_quick_bench_from_the_command_line(tmp_path):
     result = CliRunner().invoke(main, ["bench", "--quick", "--quiet", "-o", str(out)])
     assert result.exit_code == 0, result.output
     assert (out / "results.md").is_file() and "paper as published" in result.output
+
+
+def test_groups_select_points_and_unknown_groups_are_named():
+    every = bench.plan(False)
+    chosen = bench.plan(False, ("motion_model", "refine"))
+    assert chosen and {p.group for p in chosen} == {"motion_model", "refine"}
+    assert chosen == [p for p in every if p.group in ("motion_model", "refine")]
+    # motion no single warp explains: the automatic choice against a forced homography, on the same bursts
+    waves = {p.label: p.burst for p in chosen if p.burst.wobble_px or p.burst.distortion_px}
+    assert waves["wobble 1 px, auto"] == waves["wobble 1 px, homography"] != waves["distortion 1 px, auto"]
+    assert len({p.burst.key for p in chosen}) == 3  # the keys tell the bursts apart
+    with pytest.raises(ValueError, match="unknown bench group.*nope.*motion_model"):
+        bench.plan(True, ("nope",))
+    result = CliRunner().invoke(main, ["bench", "--quick", "--group", "nope", "-o", "unused"])
+    assert result.exit_code == 2 and "unknown bench group" in result.output
