@@ -14,7 +14,7 @@ import numpy as np
 from .errors import EstimationError
 from .fieldfit import FIELD_CELLS, fit_field
 from .fieldfit import residuals as field_residuals
-from .trajectory import FieldWarp, GlobalWarp, as_warp
+from .trajectory import FieldWarp, GlobalWarp, apply_homography, as_warp
 
 
 def positions_from_homography(H: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -276,8 +276,7 @@ def _noise_variance(distances: np.ndarray) -> float:
 
 def transfer_residuals(H: np.ndarray, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     """Distances (px) between ``H src`` and ``dst``."""
-    p = np.hstack([src, np.ones((len(src), 1))]) @ H.T
-    return np.linalg.norm(p[:, :2] / p[:, 2:3] - dst, axis=1)
+    return np.linalg.norm(apply_homography(H, src) - dst, axis=1)
 
 
 def estimate_motion(

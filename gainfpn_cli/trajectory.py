@@ -40,7 +40,8 @@ LATTICE = 8
 EDGE_PX = 3 * LATTICE
 
 
-def _apply(H: np.ndarray, points: np.ndarray) -> np.ndarray:
+def apply_homography(H: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """``H`` applied to ``(..., 2)`` points ``(x, y)``."""
     p = np.asarray(points, np.float64) @ H[:, :2].T + H[:, 2]
     return p[..., :2] / p[..., 2:3]
 
@@ -74,7 +75,7 @@ class GlobalWarp:
 
     def map_points(self, s: int, t: int, points: np.ndarray) -> np.ndarray:
         """Where frame t sees what frame s sees at ``points`` (``(..., 2)``)."""
-        return _apply(self.matrix(s, t), points)
+        return apply_homography(self.matrix(s, t), points)
 
     def pair(self, s: int, t: int, region: tuple[int, int, int, int]) -> np.ndarray:
         """:meth:`map_points` for the pixels of ``region = (y0, x0, h, w)`` of frame s, in the region's
@@ -123,20 +124,13 @@ class FieldWarp:
 
     def field(self, t: int, points: np.ndarray) -> np.ndarray:
         """``r_t`` at field-pixel ``points`` ``(..., 2)``."""
-        c = self.coefficients[t]
-        by = basis(points[..., 1].ravel(), self.shape[0], c.shape[1] - DEGREE)
-        if c.shape[2] == 1:
-            out = by @ c[:, :, 0].T
-        else:
-            bx = basis(points[..., 0].ravel(), self.shape[1], c.shape[2] - DEGREE)
-            out = np.stack([np.einsum("ni,ij,nj->n", by, ci, bx) for ci in c], axis=1)
-        return out.reshape(points.shape)
+        return field_at(self.coefficients[t], points, self.shape)
 
     def _to_reference(self, t: int, q: np.ndarray) -> np.ndarray:
-        return _apply(np.linalg.inv(self.homographies[t]), q - self.field(t, q))
+        return apply_homography(np.linalg.inv(self.homographies[t]), q - self.field(t, q))
 
     def _to_frame(self, t: int, p: np.ndarray) -> np.ndarray:
-        start = _apply(self.homographies[t], p)
+        start = apply_homography(self.homographies[t], p)
         q = start
         for _ in range(TO_FRAME_ITERATIONS):
             nxt = start + self.field(t, q)
@@ -148,16 +142,16 @@ class FieldWarp:
 
     def map_points(self, s: int, t: int, points: np.ndarray) -> np.ndarray:
         """Where frame t sees what frame s sees at ``points`` (``(..., 2)``)."""
-        f = _apply(self.to_field, points)
-        return _apply(np.linalg.inv(self.to_field), self._to_frame(t, self._to_reference(s, f)))
+        f = apply_homography(self.to_field, points)
+        return apply_homography(np.linalg.inv(self.to_field), self._to_frame(t, self._to_reference(s, f)))
 
     def pair(self, s: int, t: int, region: tuple[int, int, int, int]) -> np.ndarray:
         """:meth:`map_points` for the pixels of ``region = (y0, x0, h, w)`` of frame s, in the region's
         coordinates: float32 ``(h, w, 2)``.
 
-        The map is computed exactly on a lattice of every LATTICE-th pixel
-        and interpolated in between (Keys cubic convolution, as separable
-        matrix products in float64): the map is smooth on that scale.
+        The map is computed exactly on a lattice (:meth:`lattice_step`) and
+        interpolated in between (cubic splines, as separable matrix products
+        in float64): the map is smooth on that scale.
         """
         y0, x0, h, w = region
         step = self.lattice_step()
@@ -198,6 +192,17 @@ def _upsampling(n: int, step: int) -> np.ndarray:
 
     m = (n - 1) // step + 3
     return make_interp_spline(np.arange(m) - 1.0, np.eye(m), k=3)(np.arange(n) / step)
+
+
+def field_at(coefficients: np.ndarray, points: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """The field with B-spline ``coefficients`` ``(2, ny, nx)`` over a ``shape`` frame at ``(..., 2)`` points."""
+    by = basis(points[..., 1].ravel(), shape[0], coefficients.shape[1] - DEGREE)
+    if coefficients.shape[2] == 1:  # a field of the row alone
+        out = by @ coefficients[:, :, 0].T
+    else:
+        bx = basis(points[..., 0].ravel(), shape[1], coefficients.shape[2] - DEGREE)
+        out = np.stack([np.einsum("ni,ij,nj->n", by, c, bx) for c in coefficients], axis=1)
+    return out.reshape(points.shape)
 
 
 def basis(coords: np.ndarray, length: int, cells: int) -> np.ndarray:

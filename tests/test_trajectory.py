@@ -5,8 +5,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from gainfpn_cli.fieldfit import FIELD_CELLS, evaluate, fit_field
-from gainfpn_cli.trajectory import FieldWarp, GlobalWarp, as_warp
+from gainfpn_cli.fieldfit import FIELD_CELLS, fit_field
+from gainfpn_cli.trajectory import FieldWarp, GlobalWarp, as_warp, field_at
 from gainfpn_cli.warp import positions, sample
 
 SHAPE = (240, 320)
@@ -141,7 +141,7 @@ def test_fit_field_recovers_a_field_and_ignores_a_moving_cluster(model):
     # (points 0.02 px exact): rolling 0.005 px; mesh 0.017 px inside, 0.05 px
     # within 16 px of the edges, where the ridge pulls coefficients few points
     # constrain toward 0 (fieldfit.RIDGE)
-    error = np.linalg.norm(got + evaluate(fit.coefficients, truth, SHAPE) - truth, axis=1)
+    error = np.linalg.norm(got + field_at(fit.coefficients, truth, SHAPE) - truth, axis=1)
     inside = np.all((check > 16) & (check < np.array(SHAPE[::-1]) - 17), axis=1)
     assert np.sqrt(np.mean(error[inside] ** 2)) < 0.025
     assert np.sqrt(np.mean(error**2)) < 0.04
