@@ -6,7 +6,7 @@ Candidates, from fewest parameters to most:
 * ``row``: even/odd row gains (the paper saw them on silicon);
 * ``column``: one gain per column;
 * ``column+row``: both;
-* ``pixel``: every pixel's own k, which contains the structured parts.
+* ``pixel``: every pixel's own gain on top of the best structured model.
 
 A structured model averages each gain over a whole column or half the rows,
 so it is far less noisy than per-pixel k when the sensor's FPN really is
@@ -16,10 +16,20 @@ structured. The choice minimises Akaike's criterion
 
 ``sigma_k`` the solver's predicted standard error of each k and ``p`` the
 parameters beyond the overall scale (the gauge fixes it for every model):
-0, 1, W - 1, W and N - 1. AIC estimates
-the prediction error on held-out data (it is asymptotically leave-one-out
-cross-validation, Stone 1977), which is what matters when the map corrects
-other captures.
+0, 1, W - 1, W and N - 1 (every pixel's own k, which fits exactly). AIC estimates the prediction error on
+held-out data (it is asymptotically leave-one-out cross-validation, Stone
+1977), which is what matters when the map corrects other captures.
+
+Once chosen, the pixel model does not take each pixel's k as it is: a pixel
+whose k is uncertain would carry its whole estimation error into the
+correction. Its deviation ``d`` from the best structured model is shrunk to its posterior mean
+under a normal prior of the sensor's pixel FPN, ``w d`` with
+``w = s^2 / (s^2 + sigma_k^2)`` (empirical Bayes; ``s^2`` by the Paule-Mandel
+equation ``sum d^2 / (s^2 + sigma_k^2) = N``, each term of which expects 1).
+Measured with motion estimated by the tool (MSE reduction, before -> after;
+``s`` comes out as the sensor's pixel FPN plus what the solver's ``sigma_k``
+misses): 320x240 dead leaves 11.7x -> 13.8x; with a 1 px distortion 9.1x ->
+13.0x; a raw12 CFA burst 0.7x -> 1.3x; a procedural scene 23.2x -> 23.8x.
 """
 
 from __future__ import annotations
@@ -47,7 +57,8 @@ class FPNModel:
         AIC of every candidate (lower is better).
     split : dict
         Estimated input gain FPN in percent: ``pixel``, ``column``, ``row``
-        (spread of the gains ``1 / k`` attributed to each part).
+        (spread of the gains ``1 / k`` attributed to each part; the pixel
+        part is the prior's ``s``: the spread of k less its estimation noise).
     """
 
     k: np.ndarray
@@ -104,16 +115,18 @@ def select_model(k: np.ndarray, confidence: np.ndarray, *, force: str | None = N
     w = k.shape[1]
     fits = {
         # parameters beyond the overall scale, which the gauge fixes for every model
-        "none": (np.full(k.shape, _weighted_mean(k, weight)), 0),
-        "row": (np.broadcast_to(_rows_only(k, weight)[parity][:, None], k.shape), 1),
-        "column": (np.broadcast_to(_columns_only(k, weight)[None, :], k.shape), w - 1),
-        "column+row": (col[None, :] * row[parity][:, None], w),
-        "pixel": (np.where(est, k, 1.0), max(int(est.sum()) - 1, 0)),
+        "none": (np.full(k.shape, _weighted_mean(k, weight)), 0.0),
+        "row": (np.broadcast_to(_rows_only(k, weight)[parity][:, None], k.shape), 1.0),
+        "column": (np.broadcast_to(_columns_only(k, weight)[None, :], k.shape), w - 1.0),
+        "column+row": (col[None, :] * row[parity][:, None], float(w)),
     }
-    scores = {}
-    for name, (fit, params) in fits.items():
-        chi2 = float(np.sum(weight[est] * (k[est] - fit[est]) ** 2))
-        scores[name] = chi2 + 2.0 * params
+    scores = {name: _chi2(k, fit, weight, est) + 2.0 * params for name, (fit, params) in fits.items()}
+    # is there pixel FPN at all: every pixel's own k against the best structured model
+    scores["pixel"] = 2.0 * max(int(est.sum()) - 1, 0)
+    base, _ = fits[min(fits, key=lambda m: scores[m])]
+    deviation = np.where(est, k - base, 0.0)
+    prior = pixel_prior_variance(deviation[est], sigma[est])
+    fits["pixel"] = (np.where(est, base + prior / (prior + sigma**2) * deviation, 1.0), 0.0)
     chosen = force or min(MODELS, key=lambda m: scores[m])
     # a structured model knows every pixel of a column / row parity it has seen
     model_k = np.array(fits[chosen][0], dtype=np.float64)
@@ -121,13 +134,29 @@ def select_model(k: np.ndarray, confidence: np.ndarray, *, force: str | None = N
         model_k /= model_k[est].mean()
     if chosen == "pixel":
         model_k[~est] = 1.0
-    pixel_part = np.divide(k, col[None, :] * row[parity][:, None])
     split = {
-        "pixel": 100.0 * robust_spread(1.0 / pixel_part[est]) if est.any() else 0.0,
+        "pixel": 100.0 * float(np.sqrt(prior)),
         "column": 100.0 * robust_spread(1.0 / col[weight.sum(axis=0) > 0]) if est.any() else 0.0,
         "row": 100.0 * abs(row[0] - row[1]) / 2.0,
     }
     return FPNModel(model_k.astype(np.float32), chosen, scores, split)
+
+
+def pixel_prior_variance(deviation: np.ndarray, sigma: np.ndarray) -> float:
+    """``s^2`` with ``sum d^2 / (s^2 + sigma^2) = N`` (Paule & Mandel 1982), 0 if the
+    deviations ``d`` are no larger than their standard errors ``sigma`` say."""
+    from scipy.optimize import brentq
+
+    d2 = np.asarray(deviation, np.float64) ** 2
+    v = np.asarray(sigma, np.float64) ** 2
+    excess = lambda s2: float(np.sum(d2 / (s2 + v))) - d2.size  # noqa: E731 (decreasing in s2)
+    if d2.size == 0 or excess(0.0) <= 0:
+        return 0.0
+    return float(brentq(excess, 0.0, float(d2.mean()), xtol=1e-12))
+
+
+def _chi2(k: np.ndarray, fit: np.ndarray, weight: np.ndarray, est: np.ndarray) -> float:
+    return float(np.sum(weight[est] * (k[est] - fit[est]) ** 2))
 
 
 def _weighted_mean(k: np.ndarray, weight: np.ndarray) -> float:

@@ -3,7 +3,7 @@ import pytest
 
 from gainfpn_cli import metrics
 from gainfpn_cli.accurate import solve_accurate
-from gainfpn_cli.fpnmodel import MODELS, select_model, structured_parts
+from gainfpn_cli.fpnmodel import MODELS, pixel_prior_variance, select_model, structured_parts
 from gainfpn_cli.simulate import PRESETS, simulate_burst, with_overrides
 
 SIGMA = 0.005  # standard error of every synthetic k
@@ -57,11 +57,40 @@ def test_no_fpn_gets_no_visible_pattern():
 def test_split_reports_the_input_fpn():
     k, confidence, _ = _k_map(np.random.default_rng(2), pixel=0.03, column=0.04, row=0.01)
     split = select_model(k, confidence).split
-    # pixel part also holds the 0.5 % estimation noise: sqrt(3^2 + 0.5^2) = 3.04 %;
-    # 120 columns give the column sigma to ~1/sqrt(2*120) = 6 %
-    assert split["pixel"] == pytest.approx(3.04, rel=0.05)
+    # the pixel part is the prior's s: the 0.5 % estimation noise is taken out
+    # (sqrt(3^2 + 0.5^2) = 3.04 % with it); 120 columns give the column sigma
+    # to ~1/sqrt(2*120) = 6 %
+    assert split["pixel"] == pytest.approx(3.0, rel=0.02)
     assert split["column"] == pytest.approx(4.0, rel=0.2)
     assert split["row"] == pytest.approx(1.0, rel=0.05)
+
+
+def test_uncertain_pixels_are_shrunk_toward_the_structured_model():
+    # 1 % pixel FPN, k's standard error from 0.1 % to 8 % across the frame
+    rng = np.random.default_rng(6)
+    shape = (100, 120)
+    a = 1 + 0.01 * rng.standard_normal(shape)
+    sigma = np.exp(rng.uniform(np.log(0.001), np.log(0.08), shape))
+    k = 1 / a + sigma * rng.standard_normal(shape)
+    confidence = 1 / (1 + (sigma / 0.01) ** 2)
+    model = select_model(k, confidence)
+    assert model.chosen == "pixel"
+    assert model.split["pixel"] == pytest.approx(1.0, rel=0.05)
+    rms = lambda k_: 100 * np.sqrt(np.mean((k_ * a / np.mean(k_ * a) - 1) ** 2))  # noqa: E731
+    err_raw, err = rms(k), rms(model.k)
+    # the posterior mean's RMS error: sqrt(mean(s^2 sigma^2 / (s^2 + sigma^2))) with s = 1 %
+    expected = 100 * np.sqrt(np.mean(1e-4 * sigma**2 / (1e-4 + sigma**2)))
+    assert err < 0.3 * err_raw
+    assert err == pytest.approx(expected, rel=0.1)
+    sure = sigma < 0.0015  # well-measured pixels keep their own k (w >= 0.98)
+    np.testing.assert_allclose(model.k[sure] / model.k[sure].mean(), k[sure] / k[sure].mean(), atol=1e-3)
+
+
+def test_prior_variance_is_zero_when_deviations_are_only_noise():
+    rng = np.random.default_rng(7)
+    sigma = np.full(5000, 0.01)
+    assert pixel_prior_variance(sigma * rng.standard_normal(5000) * 0.98, sigma) == 0.0
+    assert pixel_prior_variance(np.array([]), np.array([])) == 0.0
 
 
 def test_structured_model_beats_per_pixel_k_on_structured_fpn():

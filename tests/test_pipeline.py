@@ -170,7 +170,9 @@ def test_presets_load():
 def test_a_moving_object_is_left_out_of_the_solve(tmp_path, seed):
     # issue 4: an object covering 10 % of the frame moves on its own. Measured
     # MSE reduction off the object (120x160, 6 frames, seeds 2 / 3): 18.5 / 22.3x
-    # without an object, 3.6 / 2.8x with it unmasked, 14.6 / 8.4x masked.
+    # without an object; with it unmasked 4.8 / 5.5x, masked 15.3 / 10.7x (before
+    # the pixel model shrank uncertain k: 3.6 / 2.8x and 14.6 / 8.4x, asserted
+    # as masked >= 6x and >= 2x unmasked).
     burst = simulate_burst(shape=(120, 160), n_frames=6, seed=seed, moving_object=0.1)
     save_burst(burst, tmp_path, fmt="exr")
     frame0 = burst.frames[0].astype(np.float32)
@@ -183,7 +185,7 @@ def test_a_moving_object_is_left_out_of_the_solve(tmp_path, seed):
         ratios[mask] = metrics.mse(frame0, burst.ideal[0], off) / metrics.mse(k * frame0, burst.ideal[0], off)
         moving = result.report["motion"]["moving_percent"]
         assert (moving is None) if not mask else (len(moving) == 6 and all(8 < m < 30 for m in moving))
-    assert ratios[True] >= 2 * ratios[False] and ratios[True] >= 6, ratios
+    assert ratios[True] >= 1.6 * ratios[False] and ratios[True] >= 9, ratios
 
 
 @pytest.mark.parametrize("kind, model", [("wobble", "rolling"), ("distortion", "mesh")])
