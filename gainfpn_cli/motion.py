@@ -311,7 +311,8 @@ def estimate_motion(
         try:
             fit, info = _fit_frame(src, dst, shape, candidates)
         except EstimationError as exc:
-            raise EstimationError(f"frame {t}: {exc} (frames must overlap the reference and show texture)") from None
+            raise EstimationError(f"frame {t}: {exc} (each frame must show texture, overlap most of the reference "
+                                  "and turn less than about 10 degrees from it)") from None
         fits.append(fit)
         per_frame.append(info)
         if progress:
@@ -329,7 +330,7 @@ def estimate_motion(
     if max(f["displacement_px"] for f in per_frame) < STILL_PX:
         raise EstimationError(
             f"no motion: every frame is within {STILL_PX} px of the reference, so the gain cannot be "
-            "estimated (pan or shake the camera during the burst)"
+            "estimated (pan or shake the camera during the burst; a scene with no texture of its own looks the same)"
         )
     return MotionResult(warp.homographies, chosen, per_frame, reason, warp)
 
