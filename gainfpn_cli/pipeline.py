@@ -248,7 +248,7 @@ def _solve_plane(frames, motion, saturation, cfg, progress, name) -> tuple[GainR
         options = SolveOptions(lam=s.lam, max_condition=s.max_condition, k_range=s.gain_range)
         result = solve_paper(frames, positions, block_size=s.block_size, options=options, saturation=saturation,
                              workers=s.workers, progress=update)
-        return result, {"method": "paper", **result.stats}
+        return _physical(result, s.gain_range), {"method": "paper", **result.stats}
     options = AccurateOptions(kernel=s.interpolation, anchors=s.anchors, partners=s.partners, rtol=s.rtol,
                               gauge_sigma=s.gauge_sigma, tile=s.tile,
                               robust_rounds=s.robust_rounds, gain_range=s.gain_range)
@@ -257,7 +257,28 @@ def _solve_plane(frames, motion, saturation, cfg, progress, name) -> tuple[GainR
     model = select_model(result.k, result.confidence, force=None if s.fpn_model == "auto" else s.fpn_model)
     info = {"method": "accurate", **result.stats, "fpn_model": model.chosen,
             "fpn_model_aic": model.scores, "input_fpn_percent": model.split}
-    return GainResult(model.k, result.confidence, result.stats), info
+    structured = model.chosen not in ("pixel", "none")
+    return _physical(GainResult(model.k, result.confidence, result.stats), s.gain_range, structured), info
+
+
+def _physical(result: GainResult, gain_range: tuple[float, float], structured: bool = False) -> GainResult:
+    """``result`` with every estimated k in ``gain_range`` and the gauge (mean 1 over the
+    estimated pixels) kept: a renormalisation can push a k just past a limit, so pixels
+    past it are left unestimated (k = 1, confidence 0) until none is. A ``structured``
+    map also gives unestimated pixels their column / row gain, renormalised with the rest."""
+    k = np.array(result.k, np.float64)
+    confidence = np.array(result.confidence, np.float64)
+    low, high = gain_range
+    for _ in range(10):
+        est = confidence > 0
+        outside = est & ((k < low) | (k > high))
+        if not outside.any():
+            break
+        est &= ~outside
+        if est.any():
+            k[np.ones(k.shape, bool) if structured else est] /= k[est].mean()
+        k[outside], confidence[outside] = 1.0, 0.0
+    return GainResult(k.astype(np.float32), confidence.astype(np.float32), result.stats)
 
 
 def _holdout_ratio(burst, frames, in_frame, k) -> float:
