@@ -1,11 +1,13 @@
 """The ``gainfpn`` command line: parse, load, call one pipeline function, report.
 
 User errors (:class:`GainFPNError`) exit 1 with one line; usage errors exit 2
-(click); anything else is a bug and keeps its traceback.
+(click); Ctrl-C exits 130 and SIGTERM 143, after the outputs being staged are
+removed; anything else is a bug and keeps its traceback.
 """
 
 from __future__ import annotations
 
+import signal
 from pathlib import Path
 
 import click
@@ -14,12 +16,27 @@ from . import __version__
 from .errors import GainFPNError
 
 
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where the program is so that staged outputs are cleaned up."""
+
+
+def _raise_terminated(signum, frame):
+    raise _Terminated
+
+
 class _Group(click.Group):
     def invoke(self, ctx: click.Context):
+        previous = signal.signal(signal.SIGTERM, _raise_terminated)
         try:
             return super().invoke(ctx)
         except GainFPNError as exc:
             raise click.ClickException(str(exc)) from None
+        except KeyboardInterrupt as exc:
+            name = "terminated" if isinstance(exc, _Terminated) else "interrupted"
+            click.echo(f"Error: {name}; nothing was written (partial outputs removed)", err=True)
+            ctx.exit(143 if isinstance(exc, _Terminated) else 130)
+        finally:
+            signal.signal(signal.SIGTERM, previous)
 
 
 @click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"]})

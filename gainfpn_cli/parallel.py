@@ -1,6 +1,7 @@
 """Run independent tasks on local processes, in order, with progress.
 
-The pool uses the ``spawn`` start method: ``fork`` deadlocks once the parent
+The pool (``multiprocessing.Pool``, whose ``terminate`` stops workers at
+once on an error or an interrupt) uses the ``spawn`` start method: ``fork`` deadlocks once the parent
 has used OpenMP (rawpy) or OpenCV threads (PITFALLS.md). Workers run their
 native libraries single-threaded, so two workers use the two cores without
 oversubscription and every task computes exactly what it computes in-process.
@@ -20,8 +21,11 @@ _THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "O
 
 
 def _init_worker() -> None:
+    import signal
+
     for var in _THREAD_VARS:
         os.environ[var] = "1"
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the whole group: the parent ends the work
 
 
 def map_ordered(
@@ -41,25 +45,30 @@ def map_ordered(
     if workers == 1 or len(tasks) <= 1:
         return list(_serial(fn, tasks, progress))
     import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor
 
     saved = {var: os.environ.get(var) for var in _THREAD_VARS}
     os.environ.update({var: "1" for var in _THREAD_VARS})  # inherited by the spawned children
     try:
-        with ProcessPoolExecutor(max_workers=min(workers, len(tasks)), mp_context=mp.get_context("spawn"),
-                                 initializer=_init_worker) as pool:
-            futures = [pool.submit(fn, task) for task in tasks]
-            for future in futures:  # in order; progress as each completes in turn
-                future.result()
-                if progress:
-                    progress(1)
-            return [f.result() for f in futures]
+        pool = mp.get_context("spawn").Pool(min(workers, len(tasks)), initializer=_init_worker)
     finally:
         for var, value in saved.items():
             if value is None:
                 os.environ.pop(var, None)
             else:
                 os.environ[var] = value
+    try:
+        results = []
+        for result in pool.imap(fn, tasks):  # in task order, as each completes in turn
+            results.append(result)
+            if progress:
+                progress(1)
+        pool.close()
+        pool.join()
+        return results
+    except BaseException:  # a failed task, Ctrl-C or SIGTERM: stop the workers now, not after their tasks
+        pool.terminate()
+        pool.join()
+        raise
 
 
 def _serial(fn: Callable[[T], R], tasks: Iterable[T], progress) -> Iterable[R]:
