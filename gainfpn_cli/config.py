@@ -242,7 +242,8 @@ def parse_config(text: str, *, source: str = "<config>", base: Config | None = N
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         at = f" (line {mark.line + 1})" if mark is not None else ""
-        raise ConfigError(f"{source}: not valid YAML{at}: {getattr(exc, 'problem', exc)}") from None
+        problem = " ".join(str(getattr(exc, "problem", None) or exc).split())  # one line, whatever YAML says
+        raise ConfigError(f"{source}: not valid YAML{at}: {problem}") from None
     return _merge(base or Config(), {} if data is None else data, source=source)
 
 

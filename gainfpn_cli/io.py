@@ -138,7 +138,10 @@ def read_frame(path: str | os.PathLike) -> Frame:
         raise InputError(f"{path}: no such file")
     if path.stat().st_size == 0:
         raise InputError(f"{path}: file is empty")
-    frame = read_exr(path) if kind_of(path) == "exr" else read_raw(path)
+    try:
+        frame = read_exr(path) if kind_of(path) == "exr" else read_raw(path)
+    except UnicodeDecodeError:  # OpenImageIO passes a damaged header's bytes into its strings
+        raise InputError(f"{path}: damaged header (names or messages that are not text)") from None
     _check_finite(frame.data, path)
     return frame
 

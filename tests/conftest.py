@@ -2,10 +2,19 @@
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
+from hypothesis import settings
 
 from gainfpn_cli.simulate import PRESETS, Shake, simulate_burst
+
+# The same examples on every run (the suite is deterministic); a search for
+# new failures: HYPOTHESIS_PROFILE=explore python -m pytest tests/test_fuzz.py
+settings.register_profile("deterministic", derandomize=True, database=None)
+settings.register_profile("explore", derandomize=False)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "deterministic"))
 
 
 @pytest.fixture(scope="session")
