@@ -24,9 +24,15 @@ def _raise_terminated(signum, frame):
     raise _Terminated
 
 
+_UNCHANGED = object()
+
+
 class _Group(click.Group):
     def invoke(self, ctx: click.Context):
-        previous = signal.signal(signal.SIGTERM, _raise_terminated)
+        try:
+            previous = signal.signal(signal.SIGTERM, _raise_terminated)
+        except ValueError:  # not the main thread: signals stay as they are
+            previous = _UNCHANGED
         try:
             return super().invoke(ctx)
         except GainFPNError as exc:
@@ -36,7 +42,8 @@ class _Group(click.Group):
             click.echo(f"Error: {name}; nothing was written (partial outputs removed)", err=True)
             ctx.exit(143 if isinstance(exc, _Terminated) else 130)
         finally:
-            signal.signal(signal.SIGTERM, previous)
+            if previous is not _UNCHANGED:
+                signal.signal(signal.SIGTERM, previous)
 
 
 @click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"]})

@@ -1,10 +1,11 @@
 """Run independent tasks on local processes, in order, with progress.
 
-The pool (``multiprocessing.Pool``, whose ``terminate`` stops workers at
-once on an error or an interrupt) uses the ``spawn`` start method: ``fork`` deadlocks once the parent
-has used OpenMP (rawpy) or OpenCV threads (PITFALLS.md). Workers run their
-native libraries single-threaded, so two workers use the two cores without
-oversubscription and every task computes exactly what it computes in-process.
+The pool is ``multiprocessing.Pool``, whose ``terminate`` stops the workers
+at once on an error or an interrupt. It uses the ``spawn`` start method:
+``fork`` deadlocks once the parent has used OpenMP (rawpy) or OpenCV threads
+(PITFALLS.md). Workers run their native libraries single-threaded, so two
+workers use the two cores without oversubscription and every task computes
+exactly what it computes in-process.
 This module imports nothing heavy at the top: the worker initializer must run
 before numpy loads its BLAS.
 """

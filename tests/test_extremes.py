@@ -101,10 +101,13 @@ def test_two_frames_are_refused():
         _run(frames, burst.saturation)
 
 
-def test_three_frames_work_without_a_hold_out():
-    # measured 1.27 % (seed 1); holding one out would fit on 2 (7.5-11 %)
+def test_three_frames_need_the_hold_out_switched_off():
+    # held out, one frame leaves 2 to fit; unchecked, measured 1.27 % here
+    # (but 0.9x in MSE on a 640x480 burst: bench, frames group)
     frames, burst = _burst(n_frames=3)
-    result = _run(frames, burst.saturation)
+    with pytest.raises(EstimationError, match="only 3 frames: .* set output.holdout: false"):
+        _run(frames, burst.saturation)
+    result = _run(frames, burst.saturation, **{"output.holdout": False})
     assert result.report["holdout"] is None
     assert any("no frame checks the estimate" in w for w in result.warnings)
     assert _residual(result, burst) < 1.6
@@ -149,7 +152,7 @@ _BASE = _shift(120, 120)
 def test_motion_the_tracker_cannot_follow_is_named(name, homographies):
     with pytest.raises(EstimationError, match=r"frame 1: only \d+ (points could be tracked|inliers).*overlap most "
                                               r"of the reference and turn less than about 10 degrees"):
-        _run(_views(homographies))
+        _run(_views(homographies + [_BASE @ _shift(1.3, 0.7)]))  # 4 frames: one can be held out
 
 
 def test_zero_motion_and_a_textureless_scene(shaken):

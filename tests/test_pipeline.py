@@ -110,7 +110,7 @@ def test_existing_output_is_not_mixed(exr_burst, tmp_path):
 
 def test_failure_leaves_no_partial_output(tmp_path):
     frames = tmp_path / "static"
-    burst = simulate_burst(shape=(64, 80), n_frames=3, seed=1, shake=Shake(translation_px=0.0, rotation_deg=0.0))
+    burst = simulate_burst(shape=(64, 80), n_frames=4, seed=1, shake=Shake(translation_px=0.0, rotation_deg=0.0))
     save_burst(burst, frames, fmt="exr")
     result = CliRunner().invoke(main, ["estimate", str(frames), "-o", str(tmp_path / "out"), "--quiet"])
     assert result.exit_code == 1
