@@ -160,7 +160,8 @@ class SolverConfig:
         "all", choice("all", "reference"), "accurate method: every frame anchors comparisons, or only the reference"
     )
     partners: int = _key(
-        0, non_negative_int, "accurate method: frames each anchor is compared with, nearest first; 0 = all (slowest)"
+        8, non_negative_int,
+        "accurate method: frames each anchor is compared with, nearest first; 0 = all (cost grows with frames^2)",
     )
     rtol: float = _key(1e-3, positive_float, "accurate method: relative tolerance of the iterative solve")
     gauge_sigma: float = _key(8.0, positive_float, "accurate method: gain structure wider than this (px) is gauged to 1")
