@@ -191,3 +191,13 @@ def test_an_existing_output_is_not_touched(burst, tmp_path):
     result = _estimate([burst], out)
     assert result.exit_code == 1 and "directory is not empty" in result.output
     assert [p.name for p in out.iterdir()] == ["keep.txt"]
+
+
+def test_an_output_directory_that_cannot_be_created(burst, tmp_path):
+    # a regular file where OUT's parent should be: refused even for root, who may write anywhere else
+    blocker = tmp_path / "not_a_dir"
+    blocker.write_text("a file")
+    result = _estimate([burst], blocker / "out")
+    assert result.exit_code == 1 and len(result.output.strip().splitlines()) == 1
+    assert str(blocker / "out") in result.output and "Traceback" not in result.output
+    assert blocker.read_text() == "a file"
