@@ -80,16 +80,16 @@ def structured_parts(k: np.ndarray, weight: np.ndarray, *, rounds: int = 3) -> t
     col = np.ones(w)
     row = np.ones(2)
     for _ in range(rounds):
-        per_row = row[parity][:, None]
-        wsum = weight.sum(axis=0)
-        col = np.divide((weight * k / per_row).sum(axis=0), wsum, out=np.ones(w), where=wsum > 0)
+        per_row = row.astype(k.dtype)[parity][:, None]
+        wsum = weight.sum(axis=0, dtype=np.float64)
+        col = np.divide((weight * k / per_row).sum(axis=0, dtype=np.float64), wsum, out=np.ones(w), where=wsum > 0)
         col /= np.average(col, weights=np.maximum(wsum, 1e-300)) if wsum.sum() > 0 else 1.0
         for p in (0, 1):
             sel = parity == p
             wp = weight[sel]
-            total = wp.sum()
-            row[p] = (wp * k[sel] / col[None, :]).sum() / total if total > 0 else 1.0
-        counts = np.array([weight[parity == p].sum() for p in (0, 1)])
+            total = wp.sum(dtype=np.float64)
+            row[p] = (wp * k[sel] / col.astype(k.dtype)[None, :]).sum(dtype=np.float64) / total if total > 0 else 1.0
+        counts = np.array([weight[parity == p].sum(dtype=np.float64) for p in (0, 1)])
         row /= np.average(row, weights=counts) if counts.sum() > 0 else 1.0
     return col, row
 
@@ -107,33 +107,36 @@ def select_model(k: np.ndarray, confidence: np.ndarray, *, force: str | None = N
     """
     if force is not None and force not in MODELS:
         raise ValueError(f"force must be one of {', '.join(MODELS)}, got {force!r}")
-    k = np.asarray(k, np.float64)
-    confidence = np.asarray(confidence, np.float64)
+    # float32 maps (frame-sized: 48 MB each at 12 MP), float64 sums
+    k = np.asarray(k, np.float32)
+    confidence = np.asarray(confidence, np.float32)
     est = confidence > 0
-    sigma = np.maximum(sigma_from_confidence(confidence), 1e-6)
-    weight = np.where(est, 1.0 / sigma**2, 0.0)
+    sigma = np.maximum(sigma_from_confidence(confidence), 1e-6).astype(np.float32)
+    weight = np.where(est, np.float32(1) / sigma**2, np.float32(0))
     col, row = structured_parts(k, weight)
     parity = np.arange(k.shape[0]) % 2
     w = k.shape[1]
     fits = {
         # parameters beyond the overall scale, which the gauge fixes for every model
-        "none": (np.full(k.shape, _weighted_mean(k, weight)), 0.0),
+        "none": (np.broadcast_to(np.float32(_weighted_mean(k, weight)), k.shape), 0.0),
         "row": (np.broadcast_to(_rows_only(k, weight)[parity][:, None], k.shape), 1.0),
         "column": (np.broadcast_to(_columns_only(k, weight)[None, :], k.shape), w - 1.0),
-        "column+row": (col[None, :] * row[parity][:, None], float(w)),
+        "column+row": (col.astype(np.float32)[None, :] * row.astype(np.float32)[parity][:, None], float(w)),
     }
     scores = {name: _chi2(k, fit, weight, est) + 2.0 * params for name, (fit, params) in fits.items()}
     # is there pixel FPN at all: every pixel's own k against the best structured model
     scores["pixel"] = 2.0 * max(int(est.sum()) - 1, 0)
     base, _ = fits[min(fits, key=lambda m: scores[m])]
-    deviation = np.where(est, k - base, 0.0)
+    deviation = np.where(est, k - base, np.float32(0))
     prior = pixel_prior_variance(deviation[est], sigma[est])
-    fits["pixel"] = (np.where(est, base + prior / (prior + sigma**2) * deviation, 1.0), 0.0)
+    shrink = np.float32(prior) / (np.float32(prior) + sigma**2)
+    fits["pixel"] = (np.where(est, base + shrink * deviation, np.float32(1)), 0.0)
+    del deviation, shrink
     chosen = force or min(MODELS, key=lambda m: scores[m])
     # a structured model knows every pixel of a column / row parity it has seen
-    model_k = np.array(fits[chosen][0], dtype=np.float64)
+    model_k = np.array(fits[chosen][0], dtype=np.float32)
     if est.any():
-        model_k /= model_k[est].mean()
+        model_k /= model_k[est].mean(dtype=np.float64)
     if chosen == "pixel":
         model_k[~est] = 1.0
     split = {
@@ -149,34 +152,34 @@ def pixel_prior_variance(deviation: np.ndarray, sigma: np.ndarray) -> float:
     deviations ``d`` are no larger than their standard errors ``sigma`` say."""
     from scipy.optimize import brentq
 
-    d2 = np.asarray(deviation, np.float64) ** 2
-    v = np.asarray(sigma, np.float64) ** 2
-    excess = lambda s2: float(np.sum(d2 / (s2 + v))) - d2.size  # noqa: E731 (decreasing in s2)
+    d2 = np.asarray(deviation, np.float32) ** 2
+    v = np.asarray(sigma, np.float32) ** 2
+    excess = lambda s2: float(np.sum(d2 / (np.float32(s2) + v), dtype=np.float64)) - d2.size  # noqa: E731 (decreasing)
     if d2.size == 0 or excess(0.0) <= 0:
         return 0.0
-    return float(brentq(excess, 0.0, float(d2.mean()), xtol=1e-12))
+    return float(brentq(excess, 0.0, float(d2.mean(dtype=np.float64)), xtol=1e-12))
 
 
 def _chi2(k: np.ndarray, fit: np.ndarray, weight: np.ndarray, est: np.ndarray) -> float:
-    return float(np.sum(weight[est] * (k[est] - fit[est]) ** 2))
+    return float(np.sum(weight[est] * (k[est] - fit[est]) ** 2, dtype=np.float64))
 
 
 def _weighted_mean(k: np.ndarray, weight: np.ndarray) -> float:
-    total = weight.sum()
-    return float((weight * k).sum() / total) if total > 0 else 1.0
+    total = weight.sum(dtype=np.float64)
+    return float((weight * k).sum(dtype=np.float64) / total) if total > 0 else 1.0
 
 
 def _rows_only(k: np.ndarray, weight: np.ndarray) -> np.ndarray:
     parity = np.arange(k.shape[0]) % 2
     out = np.ones(2)
     for p in (0, 1):
-        total = weight[parity == p].sum()
-        out[p] = (weight[parity == p] * k[parity == p]).sum() / total if total > 0 else 1.0
+        total = weight[parity == p].sum(dtype=np.float64)
+        out[p] = (weight[parity == p] * k[parity == p]).sum(dtype=np.float64) / total if total > 0 else 1.0
     return out
 
 
 def _columns_only(k: np.ndarray, weight: np.ndarray) -> np.ndarray:
-    wsum = weight.sum(axis=0)
-    return np.divide((weight * k).sum(axis=0), wsum, out=np.ones(k.shape[1]), where=wsum > 0)
+    wsum = weight.sum(axis=0, dtype=np.float64)
+    return np.divide((weight * k).sum(axis=0, dtype=np.float64), wsum, out=np.ones(k.shape[1]), where=wsum > 0)
 
 

@@ -26,7 +26,7 @@ from .blocks import GainResult, solve_paper
 from .config import Config, dump_config
 from .errors import EstimationError, InputError
 from .fpnmodel import select_model
-from .io import (ATTR_CFA, ATTR_SATURATION, Frame, atomic_output, check_consistent, check_out_dir, find_frames,
+from .io import (ATTR_CFA, ATTR_SATURATION, atomic_output, check_consistent, check_out_dir, find_frames,
                  read_exr_planes, read_frame, staged_directory, write_exr, write_text)
 from .metrics import mse, residual_fpn_percent
 from .motion import estimate_motion, moving_masks
@@ -83,21 +83,25 @@ def load_burst(inputs, cfg: Config, *, progress: Progress | None = None) -> Load
     if cfg.input.reference >= len(paths):
         raise InputError(f"input.reference is {cfg.input.reference} but there are only {len(paths)} frames")
     update = progress("read", len(paths)) if progress else None
-    frames: list[Frame] = []
-    for path in paths:
-        frames.append(read_frame(path))
+    infos = []
+    stack = None
+    for i, path in enumerate(paths):  # into one preallocated stack: the frames are held once
+        frame = read_frame(path)
+        infos.append(frame.info)
+        check_consistent(infos)
+        if stack is None:
+            stack = np.empty((len(paths),) + frame.data.shape, np.float32)
+        stack[i] = frame.data
         if update:
             update(1)
-    check_consistent([f.info for f in frames])
-    stack = np.stack([f.data for f in frames])
-    info = frames[0].info
+    info = infos[0]
     if cfg.input.dark is not None:
         dark = read_frame(cfg.input.dark)
         if dark.data.shape != stack.shape[1:]:
             raise InputError(f"{cfg.input.dark}: dark frame is {dark.data.shape[1]}x{dark.data.shape[0]} with "
                              f"{dark.data.shape[2]} channel(s); the frames are {stack.shape[2]}x{stack.shape[1]} "
                              f"with {stack.shape[3]}")
-        stack = stack - dark.data[None]
+        stack -= dark.data[None]
     saturation = cfg.input.saturation if cfg.input.saturation is not None else info.saturation
     return LoadedBurst(paths, stack, info.cfa, info.channels, saturation, cfg.input.reference)
 
@@ -117,6 +121,8 @@ def _motion_images(frames: np.ndarray, cfa: str | None) -> tuple[np.ndarray, np.
     """Grey images motion is estimated on, and S mapping their pixels to frame pixels."""
     if cfa:
         return np.stack([grey_proxy(f[..., 0]) for f in frames]), plane_to_mosaic((0.5, 0.5))
+    if frames.shape[3] == 1:
+        return frames[..., 0], np.eye(3)  # a view: no copy of a monochrome stack
     return frames.mean(axis=3), np.eye(3)
 
 
@@ -135,7 +141,8 @@ def estimate(burst: LoadedBurst, cfg: Config, *, progress: Progress | None = Non
     # k does not depend on the frames' scale; about 1 at the reference's median
     # keeps every product of the solve far from float32's limits
     scale = _scale(burst.frames[burst.reference])
-    frames = burst.frames[order] / scale
+    frames = burst.frames[order]  # a copy in reference-first order, scaled in place
+    frames /= np.float32(scale)
     saturation = None if burst.saturation is None else burst.saturation / scale
     holdout = cfg.output.holdout
     if holdout and len(frames) <= MIN_FRAMES:
@@ -155,7 +162,10 @@ def estimate(burst: LoadedBurst, cfg: Config, *, progress: Progress | None = Non
     update = progress("motion", len(frames) - 1) if progress else None
     motion = estimate_motion(motion_images, model=cfg.motion.model, progress=update)
     in_frame = motion.warp.conjugate(np.linalg.inv(S_motion))  # the motion in frame pixels
-    solve_frames, moving = _mask_moving(frames, motion_images, motion.warp, burst.cfa, cfg)
+    # without refinement rounds the unmasked frames are not needed again: mask in place
+    solve_frames, moving = _mask_moving(frames, motion_images, motion.warp, burst.cfa, cfg,
+                                        in_place=cfg.motion.refine_rounds == 0)
+    del motion_images
     timings["motion_s"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -217,9 +227,11 @@ def _scale(frame: np.ndarray) -> float:
     return float(2.0 ** np.round(np.log2(median))) if np.isfinite(median) and median > 0 else 1.0
 
 
-def _mask_moving(frames, motion_images, warp, cfa, cfg) -> tuple[np.ndarray, np.ndarray | None]:
+def _mask_moving(frames, motion_images, warp, cfa, cfg, *, in_place: bool = False
+                 ) -> tuple[np.ndarray, np.ndarray | None]:
     """Frames with the pixels that do not follow the estimated motion set to 0 (which
-    every solver leaves out, as it does dark pixels), and those pixels' masks."""
+    every solver leaves out, as it does dark pixels), and those pixels' masks.
+    ``in_place`` zeroes them in ``frames`` itself instead of a copy."""
     if not cfg.motion.mask_moving:
         return frames, None
     masks = moving_masks(motion_images, warp)
@@ -227,12 +239,15 @@ def _mask_moving(frames, motion_images, warp, cfa, cfg) -> tuple[np.ndarray, np.
         masks = np.repeat(np.repeat(masks, 2, axis=1), 2, axis=2)
         pad = [(0, 0), (0, frames.shape[1] - masks.shape[1]), (0, frames.shape[2] - masks.shape[2])]
         masks = np.pad(masks, pad, mode="edge")
+    if in_place:
+        frames[masks] = 0.0
+        return frames, masks
     return np.where(masks[..., None], np.float32(0), frames), masks
 
 
 def _solve_planes(burst, frames, in_frame, cfg, progress):
-    k = np.ones(frames.shape[1:], np.float64)
-    confidence = np.zeros(frames.shape[1:], np.float64)
+    k = np.ones(frames.shape[1:], np.float32)
+    confidence = np.zeros(frames.shape[1:], np.float32)
     reports = {}
     for name, pick, S in _planes(burst):
         result, info = _solve_plane(pick(frames), in_frame.conjugate(S), burst.saturation, cfg, progress, name)
@@ -270,8 +285,8 @@ def _physical(result: GainResult, gain_range: tuple[float, float], structured: b
     estimated pixels) kept: a renormalisation can push a k just past a limit, so pixels
     past it are left unestimated (k = 1, confidence 0) until none is. A ``structured``
     map also gives unestimated pixels their column / row gain, renormalised with the rest."""
-    k = np.array(result.k, np.float64)
-    confidence = np.array(result.confidence, np.float64)
+    k = np.array(result.k, np.float32)
+    confidence = np.array(result.confidence, np.float32)
     low, high = gain_range
     while True:  # each round leaves at least one more pixel unestimated
         est = confidence > 0
@@ -280,7 +295,7 @@ def _physical(result: GainResult, gain_range: tuple[float, float], structured: b
             break
         est &= ~outside
         if est.any():
-            k[np.ones(k.shape, bool) if structured else est] /= k[est].mean()
+            k[np.ones(k.shape, bool) if structured else est] /= k[est].mean(dtype=np.float64)
         k[outside], confidence[outside] = 1.0, 0.0
     return GainResult(k.astype(np.float32), confidence.astype(np.float32), result.stats)
 
