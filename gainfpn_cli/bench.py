@@ -19,7 +19,6 @@ import platform
 import resource
 import shutil
 import time
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -140,15 +139,13 @@ def run(out_dir: Path, *, quick: bool, groups: tuple[str, ...] = (), progress=No
     started = time.perf_counter()
     points = plan(quick, groups)
     results = []
-    context = multiprocessing.get_context("spawn")
     try:
-        with ProcessPoolExecutor(1, mp_context=context, max_tasks_per_child=1) as pool:
-            for spec in dict.fromkeys(p.burst for p in points):  # each burst once, in its own process
-                pool.submit(_make_burst, spec, scratch / spec.key).result()
-                for point in (p for p in points if p.burst == spec):
-                    results.append(pool.submit(_measure, point, scratch).result())
-                    if progress:
-                        progress(1)
+        for spec in dict.fromkeys(p.burst for p in points):  # each burst once, in its own process
+            _isolated(_make_burst, spec, scratch / spec.key)
+            for point in (p for p in points if p.burst == spec):
+                results.append(_isolated(_measure, point, scratch))
+                if progress:
+                    progress(1)
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
     _add_derived(results)
@@ -349,6 +346,48 @@ def _workers(folder: Path) -> dict:
     cv2.setNumThreads(threads)
     return {"timings": {"solve_by_workers_s": times},
             "parallel_speedup": times["1 worker, 1 thread"] / times["2 workers"]}
+
+
+def _isolated(fn, *args):
+    """``fn(*args)`` in a fresh process, so that its peak memory is its own.
+
+    On an interrupt or SIGTERM the process is terminated at once, and it
+    stops its own solver workers first (:func:`_call_and_send`).
+    """
+    context = multiprocessing.get_context("spawn")
+    receive, send = context.Pipe(duplex=False)
+    process = context.Process(target=_call_and_send, args=(send, fn, args))
+    process.start()
+    send.close()
+    try:
+        ok, value = receive.recv()
+        process.join()
+    except EOFError:
+        process.join()
+        raise RuntimeError(f"the bench process for {fn.__name__} died (exit status {process.exitcode})") from None
+    except BaseException:
+        process.terminate()
+        process.join()
+        raise
+    if not ok:
+        raise value
+    return value
+
+
+def _call_and_send(send, fn, args) -> None:
+    import signal
+
+    def stop(signum, frame):
+        raise KeyboardInterrupt  # unwinds through parallel.map_ordered, which terminates its workers
+
+    signal.signal(signal.SIGTERM, stop)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C: the bench parent terminates this process
+    try:
+        send.send((True, fn(*args)))
+    except KeyboardInterrupt:  # terminated: the parent is already stopping
+        pass
+    except Exception as exc:
+        send.send((False, exc))
 
 
 def _add_derived(results: list[dict]) -> None:

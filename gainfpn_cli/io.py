@@ -75,8 +75,10 @@ class FrameInfo:
     source_type: str = "float"
 
     def layout(self) -> tuple:
-        """The properties every frame of one burst must share."""
-        return (self.kind, self.shape, self.channels, self.cfa)
+        """The properties every frame of one burst must share (the white level, not the
+        saturation above black: a black level may drift from frame to frame)."""
+        white = None if self.saturation is None else self.saturation + max(self.black, default=0.0)
+        return (self.kind, self.shape, self.channels, self.cfa, white)
 
 
 @dataclass(frozen=True)
@@ -306,7 +308,7 @@ def check_consistent(infos: Sequence[FrameInfo]) -> None:
     if not infos:
         raise InputError("no input frames given")
     first = infos[0]
-    labels = ("file type", "size", "channels", "CFA layout")
+    labels = ("file type", "size", "channels", "CFA layout", "white level")
     for info in infos[1:]:
         for label, a, b in zip(labels, first.layout(), info.layout()):
             if a != b:
@@ -318,6 +320,8 @@ def _fmt(value) -> str:
         return f"{value[1]}x{value[0]}"
     if isinstance(value, tuple):
         return ",".join(value)
+    if isinstance(value, float):
+        return f"{value:g}"
     return str(value)
 
 

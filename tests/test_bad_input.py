@@ -111,6 +111,15 @@ def test_exr_and_raw_frames_mixed(burst, tmp_path):
     _assert_refused(_estimate([burst], tmp_path / "out"), tmp_path / "out", "frame_009.dng")
 
 
+def test_mixed_bit_depths(tmp_path):
+    rng = np.random.default_rng(4)
+    for i, bits in enumerate((12, 12, 16, 12)):
+        io.write_dng(tmp_path / f"f{i}.dng", rng.integers(64, 4000, (64, 80)).astype(np.uint16), bits=bits,
+                     cfa="RGGB", black=[64] * 4, white=2**bits - 1)
+    _assert_refused(_estimate([tmp_path], tmp_path.parent / "out"), tmp_path.parent / "out",
+                    "f2.dng: white level 65535", "differs from f0.dng (4095)")
+
+
 def test_unusual_black_levels_are_read_from_the_file(tmp_path):
     # a different black level per CFA position, one of them 100 DN below white
     black = np.array([[60, 64], [3995, 72]])
