@@ -39,7 +39,7 @@ bench-quick: $(VENV)/.bench-stamp  ## the one-minute benchmark (CI smoke) into b
 
 sample-data: $(STAMP)  ## regenerate sample_data/ (deterministic)
 	$(BIN)/gainfpn simulate sample_data/exr_burst --overwrite --size 192x128 --frames 8 --seed 1
-	$(BIN)/gainfpn simulate sample_data/dng_burst --overwrite --preset raw12 --size 128x96 --frames 8 --seed 2
+	$(BIN)/gainfpn simulate sample_data/dng_burst --overwrite --preset raw12 --size 160x128 --frames 8 --seed 2
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .hypothesis
