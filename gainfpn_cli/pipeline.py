@@ -21,7 +21,7 @@ import numpy as np
 
 from . import __version__
 from .accurate import AccurateOptions, sigma_from_confidence, solve_accurate
-from .bayer import OFFSETS, grey_proxy, plane_to_mosaic
+from .bayer import OFFSETS, green_lattice, grey_proxy, plane_to_mosaic
 from .blocks import GainResult, solve_paper
 from .config import Config, dump_config
 from .errors import EstimationError, InputError
@@ -106,15 +106,55 @@ def load_burst(inputs, cfg: Config, *, progress: Progress | None = None) -> Load
     return LoadedBurst(paths, stack, info.cfa, info.channels, saturation, cfg.input.reference)
 
 
-def _planes(burst: LoadedBurst):
-    """(name, pick, S) per plane: ``pick`` views the plane in an ``(..., H, W, C)``
-    array; ``S`` maps plane pixels to frame pixels."""
+@dataclass(frozen=True)
+class _Grid:
+    """Photosites solved together: ``gather`` takes them out of an ``(..., H, W, C)``
+    array as ``(..., h, w)`` grids, ``scatter(dst, grids)`` puts values back, and ``S``
+    maps grid pixels to frame pixels. ``positions`` names the planes it covers."""
+
+    name: str
+    gather: Callable
+    scatter: Callable
+    S: np.ndarray
+    positions: tuple[str, ...]
+
+
+def _positions(burst: LoadedBurst):
+    """(name, pick) per plane the gauge and the FPN model work on: the 2x2 positions of a
+    CFA mosaic, or the channels; ``pick`` views the plane in an ``(..., H, W, C)`` array."""
     if burst.cfa:
         for (dy, dx), colour in zip(OFFSETS, burst.cfa):
-            yield f"{colour}@{dy}{dx}", (lambda a, dy=dy, dx=dx: a[..., dy::2, dx::2, 0]), plane_to_mosaic((dy, dx))
+            yield f"{colour}@{dy}{dx}", (lambda a, dy=dy, dx=dx: a[..., dy::2, dx::2, 0])
     else:
         for c, name in enumerate(burst.channels):
-            yield name, (lambda a, c=c: a[..., c]), np.eye(3)
+            yield name, (lambda a, c=c: a[..., c])
+
+
+def _grids(burst: LoadedBurst, shape: tuple[int, int], method: str):
+    """The grids the solver runs on: each plane, except that the accurate solver takes the
+    two greens of a CFA together on their rotated lattice (:class:`bayer.GreenLattice`)."""
+    lattice = green_lattice(burst.cfa, shape) if burst.cfa and method == "accurate" else None
+    if lattice is not None:
+        greens = tuple(f"G@{dy}{dx}" for (dy, dx), colour in zip(OFFSETS, burst.cfa) if colour == "G")
+
+        def scatter(dst, grids):
+            lattice.scatter(dst[..., 0], grids)
+
+        yield _Grid("G", lambda a: lattice.gather(a[..., 0]), scatter, lattice.S, greens)
+    for (name, pick), S in zip(_positions(burst), _position_maps(burst)):
+        if lattice is not None and name.startswith("G@"):
+            continue
+
+        def scatter(dst, grids, pick=pick):
+            pick(dst)[...] = grids
+
+        yield _Grid(name, pick, scatter, S, (name,))
+
+
+def _position_maps(burst: LoadedBurst):
+    if burst.cfa:
+        return [plane_to_mosaic(offset) for offset in OFFSETS]
+    return [np.eye(3)] * len(burst.channels)
 
 
 def _motion_images(frames: np.ndarray, cfa: str | None) -> tuple[np.ndarray, np.ndarray]:
@@ -185,7 +225,7 @@ def estimate(burst: LoadedBurst, cfg: Config, *, progress: Progress | None = Non
 
     holdout_report = None
     if holdout:
-        ratio = _holdout_ratio(scaled, solve_frames, in_frame, k)
+        ratio = _holdout_ratio(scaled, solve_frames, in_frame, k, cfg.solver.method)
         holdout_report = {"frame": burst.paths[order[-1]].name, "residual_ratio": ratio, "passed": ratio < 1.0}
         if ratio >= 1.0:
             warnings.append(f"the estimate does not reduce the brightness-constancy residual on the held-out frame "
@@ -246,18 +286,32 @@ def _mask_moving(frames, motion_images, warp, cfa, cfg, *, in_place: bool = Fals
 
 
 def _solve_planes(burst, frames, in_frame, cfg, progress):
+    s = cfg.solver
     k = np.ones(frames.shape[1:], np.float32)
     confidence = np.zeros(frames.shape[1:], np.float32)
+    solved = {}
+    for grid in _grids(burst, frames.shape[1:3], s.method):
+        result, info = _solve_grid(grid.gather(frames), in_frame.conjugate(grid.S), burst.saturation, cfg, progress,
+                                   grid.name)
+        grid.scatter(k, result.k)
+        grid.scatter(confidence, result.confidence)
+        solved.update({name: {**info, "solved_on": grid.name} for name in grid.positions})
     reports = {}
-    for name, pick, S in _planes(burst):
-        result, info = _solve_plane(pick(frames), in_frame.conjugate(S), burst.saturation, cfg, progress, name)
+    for name, pick in _positions(burst):  # the gauge and the FPN model, plane by plane
+        info, structured = dict(solved[name]), False
+        kp = pick(k)
+        if s.method == "accurate":
+            model = select_model(kp, pick(confidence), force=None if s.fpn_model == "auto" else s.fpn_model)
+            info.update(fpn_model=model.chosen, fpn_model_aic=model.scores, input_fpn_percent=model.split)
+            kp, structured = model.k, model.chosen not in ("pixel", "none")
+        result = _physical(GainResult(kp, pick(confidence), {}), s.gain_range, structured)
         pick(k)[...] = result.k
         pick(confidence)[...] = result.confidence
         reports[name] = info
     return k, confidence, reports
 
 
-def _solve_plane(frames, motion, saturation, cfg, progress, name) -> tuple[GainResult, dict]:
+def _solve_grid(frames, motion, saturation, cfg, progress, name) -> tuple[GainResult, dict]:
     s = cfg.solver
     update = progress(f"solve {name}", 0) if progress else None
     if s.method == "paper":
@@ -267,17 +321,13 @@ def _solve_plane(frames, motion, saturation, cfg, progress, name) -> tuple[GainR
         options = SolveOptions(lam=s.lam, max_condition=s.max_condition, k_range=s.gain_range)
         result = solve_paper(frames, positions, block_size=s.block_size, options=options, saturation=saturation,
                              workers=s.workers, progress=update)
-        return _physical(result, s.gain_range), {"method": "paper", **result.stats}
+        return result, {"method": "paper", **result.stats}
     options = AccurateOptions(kernel=s.interpolation, anchors=s.anchors, partners=s.partners, rtol=s.rtol,
                               gauge_sigma=s.gauge_sigma, tile=s.tile,
                               robust_rounds=s.robust_rounds, gain_range=s.gain_range)
     result = solve_accurate(frames, motion, options=options, saturation=saturation, workers=s.workers,
                             progress=update)
-    model = select_model(result.k, result.confidence, force=None if s.fpn_model == "auto" else s.fpn_model)
-    info = {"method": "accurate", **result.stats, "fpn_model": model.chosen,
-            "fpn_model_aic": model.scores, "input_fpn_percent": model.split}
-    structured = model.chosen not in ("pixel", "none")
-    return _physical(GainResult(model.k, result.confidence, result.stats), s.gain_range, structured), info
+    return result, {"method": "accurate", **result.stats}
 
 
 def _physical(result: GainResult, gain_range: tuple[float, float], structured: bool = False) -> GainResult:
@@ -300,14 +350,14 @@ def _physical(result: GainResult, gain_range: tuple[float, float], structured: b
     return GainResult(k.astype(np.float32), confidence.astype(np.float32), result.stats)
 
 
-def _holdout_ratio(burst, frames, in_frame, k) -> float:
+def _holdout_ratio(burst, frames, in_frame, k, method: str) -> float:
     """Brightness-constancy residual of the held-out frame against the reference, with k over without."""
     num = den = 0.0
     sat = np.inf if burst.saturation is None else burst.saturation
-    for _, pick, S in _planes(burst):
-        ref, held, kp = pick(frames[0]), pick(frames[-1]), pick(k)
+    for grid in _grids(burst, frames.shape[1:3], method):
+        ref, held, kp = grid.gather(frames[0]), grid.gather(frames[-1]), grid.gather(k)
         shape = ref.shape
-        M = in_frame.conjugate(S).pair(0, len(frames) - 1, (0, 0) + shape)
+        M = in_frame.conjugate(grid.S).pair(0, len(frames) - 1, (0, 0) + shape)
         valid = valid_samples((held > 0) & (held < sat), M, shape) & (ref > 0) & (ref < sat)
         with_k = kp * ref - sample(kp * held, M, shape)
         without = ref - sample(held, M, shape)

@@ -55,3 +55,35 @@ def test_plane_homography_agrees_with_mosaic_motion(tx, ty, offset):
     # for a pure translation, the plane moves by half as much
     T = np.array([[1.0, 0.0, tx], [0.0, 1.0, ty], [0.0, 0.0, 1.0]])
     np.testing.assert_allclose((np.linalg.inv(S) @ T @ S)[:2, 2], [tx / 2, ty / 2], atol=1e-12)
+
+
+@pytest.mark.parametrize("cfa", ["RGGB", "BGGR", "GRBG", "GBRG"])
+@pytest.mark.parametrize("shape", [(6, 8), (7, 9), (10, 5)])
+def test_green_lattice_maps_every_green_photosite_exactly(cfa, shape):
+    from gainfpn_cli.bayer import green_lattice
+
+    lattice = green_lattice(cfa, shape)
+    colours = np.array(list(cfa)).reshape(2, 2)
+    is_green = np.tile(colours, (shape[0] // 2 + 1, shape[1] // 2 + 1))[: shape[0], : shape[1]] == "G"
+    np.testing.assert_array_equal(is_green[lattice.rows, lattice.cols], True)
+    assert len(lattice.rows) == is_green.sum()
+    # S takes each green's grid position to its mosaic position
+    mapped = lattice.S @ np.stack([lattice.u, lattice.v, np.ones_like(lattice.u)])
+    np.testing.assert_array_equal(mapped[:2], np.stack([lattice.cols, lattice.rows]))
+    # distinct cells, and gather/scatter are inverse on the greens
+    assert len(set(zip(lattice.v, lattice.u))) == len(lattice.u)
+    mosaic = np.arange(shape[0] * shape[1], dtype=np.float32).reshape(shape) + 1
+    back = np.zeros_like(mosaic)
+    lattice.scatter(back, lattice.gather(mosaic))
+    np.testing.assert_array_equal(back[is_green], mosaic[is_green])
+    assert lattice.gather(mosaic).astype(bool).sum() == is_green.sum()
+    # lattice neighbours are diagonal neighbours in the mosaic: pitch sqrt(2)
+    step = lattice.S[:2, :2] @ np.array([1.0, 0.0])
+    assert np.hypot(*step) == pytest.approx(np.sqrt(2))
+
+
+def test_no_green_lattice_without_diagonal_greens():
+    from gainfpn_cli.bayer import green_lattice
+
+    assert green_lattice("RGBG", (8, 8)) is None  # greens side by side in one row
+    assert green_lattice("RGBW", (8, 8)) is None
