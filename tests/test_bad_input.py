@@ -15,6 +15,7 @@ from gainfpn_cli import io
 from gainfpn_cli.cli import main
 from gainfpn_cli.simulate import PRESETS, simulate_burst, with_overrides
 from gainfpn_cli.truth import save_burst
+from helpers import _write_raw_exr  # the gainfpn writer refuses non-finite pixels itself
 
 
 @pytest.fixture(scope="module")
@@ -87,8 +88,6 @@ def test_a_raw_file_with_an_exr_name(burst, tmp_path):
 
 @pytest.mark.parametrize("value, word", [(np.nan, "NaN"), (np.inf, "Inf")])
 def test_nan_and_inf_pixels(burst, tmp_path, value, word):
-    from test_io import _write_raw_exr  # the gainfpn writer refuses non-finite pixels itself
-
     pixels = io.read_frame(burst / "frame_001.exr").data[..., 0].copy()
     pixels[10, 20] = value
     (burst / "frame_001.exr").unlink()

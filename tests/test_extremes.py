@@ -8,7 +8,6 @@ runs them all in about 20 s.
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -16,48 +15,11 @@ import pytest
 
 from gainfpn_cli import metrics
 from gainfpn_cli.config import load_config
-from gainfpn_cli.errors import EstimationError, InputError
-from gainfpn_cli.pipeline import LoadedBurst, estimate, load_burst
+from gainfpn_cli.errors import EstimationError
+from gainfpn_cli.pipeline import estimate, load_burst
 from gainfpn_cli.simulate import PRESETS, simulate_burst, with_overrides
 from gainfpn_cli.truth import save_burst
-
-SHAPE = (64, 80)
-
-
-def _burst(**options):
-    options = {"shape": SHAPE, "n_frames": 6, "seed": 1, **options}
-    burst = simulate_burst(**options)
-    return burst.frames.astype(np.float32) - burst.sensor.black_level, burst
-
-
-def _run(frames, saturation=None, **overrides):
-    frames = np.asarray(frames, np.float32)[..., None]
-    loaded = LoadedBurst([Path(f"f{i}.exr") for i in range(len(frames))], frames, None, ("Y",), saturation, 0)
-    cfg = load_config(overrides={"solver.workers": 1, **overrides})
-    result = estimate(loaded, cfg)
-    _assert_sane(result, cfg)
-    return result
-
-
-def _assert_sane(result, cfg):
-    """What every output must be: finite, gauged, physical."""
-    k, confidence = result.k[..., 0], result.confidence[..., 0]
-    assert np.isfinite(k).all() and np.isfinite(confidence).all()
-    assert ((confidence >= 0) & (confidence <= 1)).all()
-    est = confidence > 0
-    models = {p.get("fpn_model", "pixel") for p in result.report["planes"].values()}
-    if models <= {"pixel", "none"}:  # a column / row model also knows the unestimated pixels' gains
-        assert (k[~est] == 1).all()
-    if est.any():
-        low, high = cfg.solver.gain_range
-        assert ((k[est] >= low) & (k[est] <= high)).all()
-        assert k[est].mean() == pytest.approx(1.0, abs=1e-4)
-
-
-def _residual(result, burst):
-    k, est = result.k[..., 0], result.confidence[..., 0] > 0
-    return metrics.residual_fpn_percent(k, burst.gain, est)
-
+from helpers import SHAPE, _assert_sane, _burst, _residual, _run
 
 @pytest.fixture(scope="module")
 def shaken():

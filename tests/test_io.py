@@ -1,8 +1,6 @@
 import os
-from pathlib import Path
 
 import numpy as np
-import OpenImageIO as oiio
 import pytest
 import rawpy
 from hypothesis import HealthCheck, given, settings
@@ -11,15 +9,7 @@ from hypothesis.extra import numpy as hnp
 
 from gainfpn_cli import io
 from gainfpn_cli.errors import InputError
-
-
-def _write_raw_exr(path, pixels, names, fmt="float"):
-    """Independent writer (plain OpenImageIO) for fixtures the gainfpn writer would refuse."""
-    pixels = np.ascontiguousarray(pixels)
-    spec = oiio.ImageSpec(pixels.shape[1], pixels.shape[0], pixels.shape[2], fmt)
-    spec.channelnames = tuple(names)
-    out = oiio.ImageOutput.create(str(path))
-    assert out.open(str(path), spec) and out.write_image(pixels) and out.close()
+from helpers import _write_raw_exr
 
 
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])

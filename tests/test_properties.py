@@ -18,7 +18,7 @@ from gainfpn_cli.cli import main
 from gainfpn_cli.errors import EstimationError
 from gainfpn_cli.simulate import PRESETS, Shake, simulate_burst, with_overrides
 from gainfpn_cli.truth import save_burst
-from test_extremes import _assert_sane, _burst, _run
+from helpers import _burst, _run
 
 
 @settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
