@@ -50,6 +50,8 @@ MIN_TRACK_SIDE = 64
 #: shadows also crosses it while its bright parts are fine, so it is a
 #: warning, not an error.
 MAX_DARK_FRACTION = 0.01
+#: Longest side (px) of the gain map shown in preview.png.
+PREVIEW_PX = 1024
 
 #: progress(stage, total) -> update(n): the CLI's tqdm, or nothing
 Progress = Callable[[str, int], Callable[[int], None]]
@@ -439,11 +441,17 @@ def _check_finite(corrected: np.ndarray, path: Path) -> None:
 
 
 def write_preview(path: Path, k: np.ndarray, confidence: np.ndarray) -> None:
-    """The gain map (first plane, +-3 robust sigma, colour-mapped) beside a histogram of k."""
+    """The gain map (first plane, +-3 robust sigma, colour-mapped) beside a histogram of k.
+
+    Maps longer than :data:`PREVIEW_PX` are shown (and their histogram taken) on every
+    n-th pixel, not averaged, so that the pixel-level pattern stays visible; a 12 MP
+    map took 1.3 s at full size.
+    """
     import cv2
 
-    plane = np.asarray(k[..., 0], np.float64)
-    est = confidence[..., 0] > 0
+    step = max(1, -(-max(k.shape[:2]) // PREVIEW_PX))
+    plane = np.asarray(k[::step, ::step, 0], np.float64)
+    est = confidence[::step, ::step, 0] > 0
     values = plane[est] if est.any() else plane.ravel()
     sigma = max(1.4826 * float(np.median(np.abs(values - np.median(values)))), 1e-4)
     scaled = np.clip((plane - 1.0) / (3 * sigma) * 127.5 + 127.5, 0, 255).astype(np.uint8)
@@ -459,6 +467,8 @@ def write_preview(path: Path, k: np.ndarray, confidence: np.ndarray) -> None:
         bar = int((hist_h - 20) * c / top)
         cv2.rectangle(hist, (i * 4, hist_h - 1 - bar), (i * 4 + 3, hist_h - 1), (90, 60, 20), -1)
     cv2.putText(hist, f"k: 1 +- {100 * sigma:.2f}%", (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1)
+    if step > 1:
+        cv2.putText(hist, f"every {step}th pixel", (4, 30), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1)
     with atomic_output(path) as tmp:
         if not cv2.imwrite(str(tmp), np.hstack([image, hist])):
             raise InputError(f"{path}: cannot write PNG")
