@@ -47,9 +47,10 @@ CONFIDENCE_SCALE = 0.01
 
 def sigma_from_confidence(confidence: np.ndarray) -> np.ndarray:
     """Invert ``confidence = 1 / (1 + (sigma_k / CONFIDENCE_SCALE)^2)``: inf where confidence is 0."""
-    confidence = np.asarray(confidence, np.float64)
-    ratio = np.divide(1.0, confidence, out=np.full(confidence.shape, np.inf), where=confidence > 0)
-    return CONFIDENCE_SCALE * np.sqrt(ratio - 1.0)
+    confidence = np.asarray(confidence)
+    dtype = np.float32 if confidence.dtype == np.float32 else np.float64  # float32 maps stay float32
+    ratio = np.divide(dtype(1), confidence, out=np.full(confidence.shape, np.inf, dtype), where=confidence > 0)
+    return dtype(CONFIDENCE_SCALE) * np.sqrt(ratio - dtype(1))
 
 
 @dataclass(frozen=True)

@@ -119,8 +119,9 @@ STILL_PX = 0.05
 
 def to_uint8(frame: np.ndarray, lo: float, hi: float) -> np.ndarray:
     """Scale ``[lo, hi]`` to 0..255 (OpenCV's trackers take 8-bit images only)."""
-    scaled = (np.asarray(frame, np.float32) - lo) * (255.0 / max(hi - lo, 1e-12))
-    return np.clip(scaled + 0.5, 0, 255).astype(np.uint8)
+    lo, hi = float(lo), float(hi)  # Python floats: a NumPy float64 scalar would make the arithmetic float64
+    scaled = (np.asarray(frame, np.float32) - lo) * (255.0 / max(hi - lo, 1e-12)) + 0.5
+    return np.clip(scaled, 0, 255, out=scaled).astype(np.uint8)
 
 
 def tracking_image(frame: np.ndarray, lo: float, hi: float) -> np.ndarray:
