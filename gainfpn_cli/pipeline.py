@@ -75,13 +75,17 @@ class Estimate:
     warnings: list = field(default_factory=list)
 
 
+def _check_frame_count(n: int, error: type, where: str = "") -> None:
+    """Refuse bursts of fewer than :data:`MIN_FRAMES` (``error`` says whose fault it is)."""
+    if n < MIN_FRAMES:
+        raise error(f"need at least {MIN_FRAMES} frames, got {n}{where}: with 2, each pixel is compared along a "
+                    "single chain of pixels whose errors add up (measured: worse than no correction)")
+
+
 def load_burst(inputs, cfg: Config, *, progress: Progress | None = None) -> LoadedBurst:
     """Read the frames (and subtract the master dark frame) as one float32 stack."""
     paths = find_frames(inputs)
-    if len(paths) < MIN_FRAMES:
-        raise InputError(f"need at least {MIN_FRAMES} frames, got {len(paths)} ({paths[0] if paths else 'none'}): "
-                         "with 2, each pixel is compared along a single chain of pixels whose errors add up "
-                         "(measured: worse than no correction)")
+    _check_frame_count(len(paths), InputError, f" ({paths[0] if paths else 'none'})")
     if cfg.input.reference >= len(paths):
         raise InputError(f"input.reference is {cfg.input.reference} but there are only {len(paths)} frames")
     update = progress("read", len(paths)) if progress else None
@@ -122,14 +126,15 @@ class _Grid:
 
 
 def _positions(burst: LoadedBurst):
-    """(name, pick) per plane the gauge and the FPN model work on: the 2x2 positions of a
-    CFA mosaic, or the channels; ``pick`` views the plane in an ``(..., H, W, C)`` array."""
+    """(name, pick, S) per plane the gauge and the FPN model work on: the 2x2 positions of a
+    CFA mosaic, or the channels; ``pick`` views the plane in an ``(..., H, W, C)`` array,
+    ``S`` maps plane pixels to frame pixels."""
     if burst.cfa:
         for (dy, dx), colour in zip(OFFSETS, burst.cfa):
-            yield f"{colour}@{dy}{dx}", (lambda a, dy=dy, dx=dx: a[..., dy::2, dx::2, 0])
+            yield f"{colour}@{dy}{dx}", (lambda a, dy=dy, dx=dx: a[..., dy::2, dx::2, 0]), plane_to_mosaic((dy, dx))
     else:
         for c, name in enumerate(burst.channels):
-            yield name, (lambda a, c=c: a[..., c])
+            yield name, (lambda a, c=c: a[..., c]), np.eye(3)
 
 
 def _grids(burst: LoadedBurst, shape: tuple[int, int], method: str):
@@ -143,7 +148,7 @@ def _grids(burst: LoadedBurst, shape: tuple[int, int], method: str):
             lattice.scatter(dst[..., 0], grids)
 
         yield _Grid("G", lambda a: lattice.gather(a[..., 0]), scatter, lattice.S, greens)
-    for (name, pick), S in zip(_positions(burst), _position_maps(burst)):
+    for name, pick, S in _positions(burst):
         if lattice is not None and name.startswith("G@"):
             continue
 
@@ -151,12 +156,6 @@ def _grids(burst: LoadedBurst, shape: tuple[int, int], method: str):
             pick(dst)[...] = grids
 
         yield _Grid(name, pick, scatter, S, (name,))
-
-
-def _position_maps(burst: LoadedBurst):
-    if burst.cfa:
-        return [plane_to_mosaic(offset) for offset in OFFSETS]
-    return [np.eye(3)] * len(burst.channels)
 
 
 def _motion_images(frames: np.ndarray, cfa: str | None) -> tuple[np.ndarray, np.ndarray]:
@@ -173,8 +172,7 @@ def estimate(burst: LoadedBurst, cfg: Config, *, progress: Progress | None = Non
     timings: dict[str, float] = {}
     warnings: list[str] = []
     order = [burst.reference] + [i for i in range(len(burst.paths)) if i != burst.reference]
-    if len(order) < MIN_FRAMES:
-        raise EstimationError(f"need at least {MIN_FRAMES} frames, got {len(order)}")
+    _check_frame_count(len(order), EstimationError)
     dark = float(np.mean(burst.frames[burst.reference] <= 0))
     if dark > MAX_DARK_FRACTION:
         warnings.append(f"the frames are dark: {100 * dark:.1f} % of the reference's pixels are at or below black; "
@@ -299,7 +297,7 @@ def _solve_planes(burst, frames, in_frame, cfg, progress):
         grid.scatter(confidence, result.confidence)
         solved.update({name: {**info, "solved_on": grid.name} for name in grid.positions})
     reports = {}
-    for name, pick in _positions(burst):  # the gauge and the FPN model, plane by plane
+    for name, pick, _ in _positions(burst):  # the gauge and the FPN model, plane by plane
         info, structured = dict(solved[name]), False
         kp = pick(k)
         if s.method == "accurate":
