@@ -103,11 +103,16 @@ def _parse_scene(ctx, param, value):
               help="Sigma of a rolling-shutter wobble's amplitude, px (motion no single warp explains).")
 @click.option("--distortion", type=click.FloatRange(0), default=0.0, show_default=True,
               help="Sigma of a smooth 2-D distortion's amplitude, px (a stand-in for parallax).")
+@click.option("--moving-object", type=click.FloatRange(0, 0.5), default=0.0, show_default=True,
+              help="Fraction of the frame covered by a textured disk that moves on its own.")
+@click.option("--parallax", type=click.FloatRange(0), default=0.0, show_default=True,
+              help="With --moving-object: the disk is a nearer plane instead, displaced 1 + PARALLAX times as far "
+                   "as the background.")
 @click.option("--exposure", type=click.FloatRange(0, min_open=True), default=0.75, show_default=True,
               help="Electrons at scene value 1, as a fraction of full well.")
 @click.option("--overwrite", is_flag=True, help="Replace the results in a non-empty OUT_DIR.")
 def simulate(out_dir, preset, n_frames, size, fmt, seed, scene, fpn_pixel, fpn_column, fpn_row, read_noise, bits,
-             black, cfa, shake, rotation, drift, wobble, distortion, exposure, overwrite):
+             black, cfa, shake, rotation, drift, wobble, distortion, moving_object, parallax, exposure, overwrite):
     """Write a synthetic burst with known gains and motion into OUT_DIR."""
     import dataclasses
 
@@ -124,11 +129,14 @@ def simulate(out_dir, preset, n_frames, size, fmt, seed, scene, fpn_pixel, fpn_c
     fmt = fmt or ("dng" if sensor.cfa else "exr")
     motion = Shake(translation_px=shake, rotation_deg=rotation, drift_px=drift, wobble_px=wobble,
                    distortion_px=distortion)
+    if parallax and not moving_object:
+        raise click.BadParameter("needs --moving-object: the nearer plane is the disk", param_hint="--parallax")
     parameters = {"seed": seed, "shape": list(size), "n_frames": n_frames, "exposure": exposure,
-                  "scene": str(scene), "format": fmt,
+                  "scene": str(scene), "format": fmt, "moving_object": moving_object, "parallax": parallax,
                   "sensor": dataclasses.asdict(sensor), "shake": dataclasses.asdict(motion)}
     paths = simulate_to(out_dir, fmt=fmt, overwrite=overwrite, scene=scene, parameters=parameters, shape=size,
-                        n_frames=n_frames, sensor=sensor, shake=motion, exposure=exposure, seed=seed)
+                        n_frames=n_frames, sensor=sensor, shake=motion, exposure=exposure, seed=seed,
+                        moving_object=moving_object, parallax=parallax)
     click.echo(f"wrote {len(paths)} {fmt.upper()} frames ({size[1]}x{size[0]}) and truth/ to {out_dir}")
 
 

@@ -129,9 +129,10 @@ class InputConfig:
 class MotionConfig:
     model: str = _key(
         "auto",
-        choice("auto", "translation", "affine", "homography", "rolling", "mesh"),
-        "motion model: a global warp, or a homography plus a smooth field (rolling: per row, for a rolling "
-        "shutter; mesh: over the frame); auto picks the one with the lowest GRIC (robust information criterion)",
+        choice("auto", "translation", "affine", "homography", "rolling", "mesh", "layers"),
+        "motion model: a global warp, a homography plus a smooth field (rolling: per row, for a rolling "
+        "shutter; mesh: over the frame), or layers (a homography per scene layer: a near object's parallax, an "
+        "object moving on its own); auto picks the one with the lowest GRIC (robust information criterion)",
     )
     # Measured (6 bursts per case, 200x260x8, fast and balanced solvers): on the
     # smooth procedural scene one round cuts the worst-frame motion error

@@ -14,7 +14,8 @@ import numpy as np
 from .errors import EstimationError
 from .fieldfit import FIELD_CELLS, fit_field
 from .fieldfit import residuals as field_residuals
-from .trajectory import FieldWarp, GlobalWarp, apply_homography, as_warp
+from .layers import find_layers, label_pixels
+from .trajectory import NOWHERE, FieldWarp, GlobalWarp, LayeredWarp, apply_homography, as_warp
 
 
 def positions_from_homography(H: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -55,8 +56,10 @@ def positions_from_flow(flow_xy: np.ndarray) -> np.ndarray:
 #: Parameters of each global model, simplest first.
 MODEL_PARAMS = {"translation": 2, "affine": 6, "homography": 8}
 MIN_POINTS = {"translation": 3, "affine": 6, "homography": 8}
-#: Every model, simplest first: the global ones, then the fields of :mod:`fieldfit`.
+#: Every model fitted frame by frame, simplest first: the global ones, then the fields of :mod:`fieldfit`.
 MODELS = [*MODEL_PARAMS, *FIELD_CELLS]
+#: Every model: those, and scene layers (:mod:`layers`), fitted to the whole burst at once.
+ALL_MODELS = [*MODELS, "layers"]
 
 
 @dataclass(frozen=True)
@@ -76,15 +79,18 @@ class MotionResult:
         ``gric`` of each model.
     reason : str
         Why that model was chosen.
-    warp : GlobalWarp or FieldWarp
+    warp : GlobalWarp, FieldWarp or LayeredWarp
         The motion as maps between frames.
+    layers : list of dict
+        For the layers model: each secondary layer's model and point count.
     """
 
     homographies: np.ndarray
     model: str
     per_frame: list = field(default_factory=list)
     reason: str = ""
-    warp: GlobalWarp | FieldWarp | None = None
+    warp: GlobalWarp | FieldWarp | LayeredWarp | None = None
+    layers: list = field(default_factory=list)
 
 
 #: Gaussian sigma (px) applied before tracking: gain FPN is white at the pixel
@@ -165,11 +171,17 @@ def track_points(reference: np.ndarray, frame: np.ndarray, corners: np.ndarray |
     start by more than 0.1 px are dropped. Returns ``(src, dst)``, each
     ``(n, 2)`` float64 ``(x, y)``.
     """
+    corners = find_corners(reference) if corners is None else corners
+    moved, ok = track_corners(reference, frame, corners)
+    return corners.reshape(-1, 2)[ok].astype(np.float64), moved[ok]
+
+
+def track_corners(reference: np.ndarray, frame: np.ndarray, corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`track_points` keeping every corner: ``(moved (n, 2) float64, tracked (n,) bool)``."""
     import cv2
 
-    corners = find_corners(reference) if corners is None else corners
     if len(corners) == 0:
-        return np.empty((0, 2)), np.empty((0, 2))
+        return np.empty((0, 2)), np.empty(0, bool)
     params = dict(winSize=(21, 21), maxLevel=5, criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 60, 1e-3))
     shift = coarse_shift(reference, frame)
     try:
@@ -181,7 +193,7 @@ def track_points(reference: np.ndarray, frame: np.ndarray, corners: np.ndarray |
     except cv2.error as exc:
         raise EstimationError(f"point tracking failed: {exc.err}") from None
     ok = (st1.ravel() == 1) & (st2.ravel() == 1) & (np.linalg.norm((back - corners).reshape(-1, 2), axis=1) < 0.1)
-    return corners.reshape(-1, 2)[ok].astype(np.float64), moved.reshape(-1, 2)[ok].astype(np.float64)
+    return moved.reshape(-1, 2).astype(np.float64), ok
 
 
 #: Phase correlation runs on the frames area-reduced to at most this many
@@ -290,12 +302,13 @@ def estimate_motion(
 
     Corners of the reference are tracked into each frame (pyramidal
     Lucas-Kanade: shakes of tens of pixels work); the global models and the
-    field models (:mod:`fieldfit`) are fitted to them. With ``model="auto"``
-    the burst gets the model with the lowest :func:`gric` summed over frames
-    -- the simplest the data support.
+    field models (:mod:`fieldfit`) are fitted to them, and scene layers
+    (:mod:`layers`) split off the points the best global model leaves. With
+    ``model="auto"`` the burst gets the model with the lowest :func:`gric`
+    summed over frames -- the simplest the data support.
     """
-    if model != "auto" and model not in MODELS:
-        raise ValueError(f"model must be auto or one of {', '.join(MODELS)}, got {model!r}")
+    if model != "auto" and model not in ALL_MODELS:
+        raise ValueError(f"model must be auto or one of {', '.join(ALL_MODELS)}, got {model!r}")
     frames = np.asarray(frames, np.float32)
     if frames.ndim != 3 or frames.shape[0] < 2:
         raise ValueError(f"frames must have shape (F, H, W) with F >= 2, got {frames.shape}")
@@ -305,12 +318,15 @@ def estimate_motion(
         raise EstimationError("the reference frame is uniform: no texture to track")
     ref8 = tracking_image(frames[0], lo, hi)
     corners = find_corners(ref8)  # once per burst
-    candidates = MODELS if model == "auto" else [model]
-    fits, per_frame = [], []
+    src_all = corners.reshape(-1, 2).astype(np.float64)
+    candidates = ALL_MODELS if model == "auto" else [model]
+    per_frame_models = [m for m in candidates if m in MODELS] or ["homography"]  # layers start from a homography
+    fits, per_frame, dst_all = [], [], np.full((len(frames) - 1, len(src_all), 2), np.nan)
     for t in range(1, len(frames)):
-        src, dst = track_points(ref8, tracking_image(frames[t], lo, hi), corners)
+        moved, ok = track_corners(ref8, tracking_image(frames[t], lo, hi), corners)
+        dst_all[t - 1, ok] = moved[ok]
         try:
-            fit, info = _fit_frame(src, dst, shape, candidates)
+            fit, info = _fit_frame(src_all[ok], moved[ok], shape, per_frame_models)
         except EstimationError as exc:
             raise EstimationError(f"frame {t}: {exc} (each frame must show texture, overlap most of the reference "
                                   "and turn less than about 10 degrees from it)") from None
@@ -318,22 +334,71 @@ def estimate_motion(
         per_frame.append(info)
         if progress:
             progress(1)
+    totals = {name: sum(f["gric"][name] for f in per_frame) for name in per_frame_models}
+    layers = None
+    if "layers" in candidates:
+        base = min(MODEL_PARAMS, key=lambda m: totals[m]) if model == "auto" else "homography"
+        homographies = np.array([np.eye(3)] + [f[base] for f in fits])
+        layers = find_layers(src_all, dst_all, homographies)
+        if layers.n_layers > 1 or model == "layers":  # one layer is the base model itself
+            totals["layers"] = _layers_gric(layers, per_frame, base)
     if model == "auto":
-        totals = {name: sum(f["gric"][name] for f in per_frame) for name in MODELS}
-        chosen = min(MODELS, key=lambda m: totals[m])
-        reason = "lowest total GRIC: " + ", ".join(f"{m} {totals[m]:.1f}" for m in MODELS)
+        chosen = min(totals, key=totals.get)
+        reason = "lowest total GRIC: " + ", ".join(f"{m} {v:.1f}" for m, v in totals.items())
     else:
         chosen, reason = model, "forced by configuration"
-    warp = _assemble(fits, chosen, shape)
+    if chosen == "layers":
+        warp = _layered(frames, layers)
+        for t, info in enumerate(per_frame, start=1):
+            e = layers.residuals[t - 1]
+            info["rms"]["layers"] = float(np.sqrt(np.nanmean(np.where(e < INLIER_PX, e, np.nan) ** 2)))
+    else:
+        warp = _assemble(fits, chosen, shape)
     for t, info in enumerate(per_frame, start=1):
         info["rms_px"] = info.pop("rms")[chosen]
         info["displacement_px"] = trajectory_rms(warp.homographies[t], np.eye(3), shape, step=8)
+        info.pop("sigma2")
     if max(f["displacement_px"] for f in per_frame) < STILL_PX:
         raise EstimationError(
             f"no motion: every frame is within {STILL_PX} px of the reference, so the gain cannot be "
             "estimated (pan or shake the camera during the burst; a scene with no texture of its own looks the same)"
         )
-    return MotionResult(warp.homographies, chosen, per_frame, reason, warp)
+    described = [] if layers is None or chosen != "layers" else [
+        {"model": m, "points": int((layers.members == i + 1).sum())} for i, m in enumerate(layers.models)]
+    return MotionResult(warp.homographies, chosen, per_frame, reason, warp, described)
+
+
+def _layers_gric(layers, per_frame, base: str) -> float:
+    """GRIC of the layered model, summed over frames: each point scored under its own layer, in units
+    of that layer's tracking noise (points on a small, moving surface track less well: their windows
+    straddle its edge), plus the parameters of every layer and a noise level per secondary layer.
+
+    A point's layer is not counted as a parameter: like the capped residual
+    of a point no model explains, it costs nothing, and :func:`layers.find_layers`
+    only forms a layer from points that all follow it in every frame.
+    """
+    total = 0.0
+    for t, info in enumerate(per_frame):
+        e = layers.residuals[t]
+        costs = []
+        for layer in range(layers.n_layers):
+            own = e[(layers.members == layer) & np.isfinite(e)]
+            sigma2 = info["sigma2"] if layer == 0 else max(_noise_variance(own), info["sigma2"])
+            costs.append(np.minimum(own**2 / sigma2, 4.0))
+        params = MODEL_PARAMS[base] + layers.params + (layers.n_layers - 1)
+        total += float(np.sum(np.concatenate(costs))) + params * np.log(4 * info["tracked"])
+    return total
+
+
+def _layered(frames: np.ndarray, layers) -> LayeredWarp:
+    """The layered warp: every pixel of every frame labelled with the layer it sees (on the masks' grid)."""
+    factor = mask_factor(frames.shape[1:])
+    smooth, to_reduced = _reduced_smooth(frames, factor)
+    reduced = np.array([[to_reduced @ H @ np.linalg.inv(to_reduced) for H in per_frame]
+                        for per_frame in layers.homographies])
+    labels = label_pixels(smooth, reduced, layers.members, apply_homography(to_reduced, layers.points),
+                          smoothing=TRACK_SIGMA / factor)
+    return LayeredWarp(layers.homographies, labels, to_reduced)
 
 
 def _fit_frame(src, dst, shape, candidates) -> tuple[dict, dict]:
@@ -354,7 +419,7 @@ def _fit_frame(src, dst, shape, candidates) -> tuple[dict, dict]:
     sigma2 = max(min(_noise_variance(residuals[m][used[m]]) for m in candidates), 1e-8)
     scores = gric({m: residuals[m] for m in candidates}, params, sigma2)
     rms = {m: float(np.sqrt(np.mean(residuals[m][used[m]] ** 2))) for m in candidates}
-    info = {"tracked": int(len(src)), "inliers": int(inliers.sum()), "gric": scores, "rms": rms}
+    info = {"tracked": int(len(src)), "inliers": int(inliers.sum()), "gric": scores, "rms": rms, "sigma2": sigma2}
     return fits, info
 
 
@@ -396,6 +461,24 @@ def mask_factor(shape: tuple[int, int]) -> int:
     return max(1, int(np.ceil(np.sqrt(shape[0] * shape[1] / MASK_PIXELS))))
 
 
+def _reduced_smooth(frames: np.ndarray, factor: int) -> tuple[list, np.ndarray]:
+    """Each frame smoothed by TRACK_SIGMA and area-reduced ``factor`` times (one full-size blurred frame
+    at a time), and the map from frame pixels to reduced pixels."""
+    import cv2
+
+    h, w = frames.shape[1:]
+    size = (max(1, w // factor), max(1, h // factor))
+    sx, sy = size[0] / w, size[1] / h
+    # reduced pixel centres: x_r = (x + 0.5) * w_r / w - 0.5
+    to_reduced = np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]])
+
+    def smoothed(frame: np.ndarray) -> np.ndarray:
+        blurred = cv2.GaussianBlur(frame, (0, 0), TRACK_SIGMA)
+        return blurred if factor == 1 else cv2.resize(blurred, size, interpolation=cv2.INTER_AREA)
+
+    return [smoothed(f) for f in frames], to_reduced
+
+
 def moving_masks(frames: np.ndarray, motion, *, factor: int | None = None) -> np.ndarray:
     """Pixels of each frame (in its own coordinates) that do not follow the estimated motion.
 
@@ -414,15 +497,9 @@ def moving_masks(frames: np.ndarray, motion, *, factor: int | None = None) -> np
     n, h, w = frames.shape
     factor = mask_factor((h, w)) if factor is None else int(factor)
     size = (max(1, w // factor), max(1, h // factor))
-    # reduced pixel centres: x_r = (x + 0.5) * w_r / w - 0.5
     sx, sy = size[0] / w, size[1] / h
-    to_reduced = np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]])
     lo, hi = np.percentile(frames[0], [0.5, 99.5])
-    def smoothed(frame: np.ndarray) -> np.ndarray:
-        blurred = cv2.GaussianBlur(frame, (0, 0), TRACK_SIGMA)
-        return blurred if factor == 1 else cv2.resize(blurred, size, interpolation=cv2.INTER_AREA)
-
-    smooth = [smoothed(f) for f in frames]  # one full-size blurred frame at a time
+    smooth, to_reduced = _reduced_smooth(frames, factor)
     track = [to_uint8(f, lo, hi) for f in smooth]  # tracking_image without blurring twice
     grid = np.stack(np.meshgrid(np.arange(size[0], dtype=np.float64), np.arange(size[1], dtype=np.float64)), axis=-1)
     dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
@@ -437,7 +514,8 @@ def moving_masks(frames: np.ndarray, motion, *, factor: int | None = None) -> np
         expected = positions(M, (size[1], size[0])) - grid
         diff = np.abs(smooth[a] - sample(smooth[b], M, (size[1], size[0]), kernel="bilinear"))
         sigma = 1.4826 * float(np.median(diff))
-        return (np.linalg.norm(flow - expected, axis=-1) > limit) & (diff > MASK_SIGMAS * sigma)
+        traced = expected[..., 0] > NOWHERE / 2  # a layered warp's occluded pixels have no trajectory to judge
+        return traced & (np.linalg.norm(flow - expected, axis=-1) > limit) & (diff > MASK_SIGMAS * sigma)
 
     reduced = np.zeros((n, size[1], size[0]), np.uint8)
     for t in range(1, n):

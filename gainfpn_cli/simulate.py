@@ -95,6 +95,9 @@ class Burst:
     waves : ndarray, shape (F, K, 5), optional
         Motion no single warp explains (see :func:`wave_parameters`); None
         without any. :meth:`positions` includes it.
+    object_offsets : ndarray, shape (F, 2), optional
+        The moving object's own displacement (reference px) in each frame:
+        frame t sees the object's reference point ``p`` at ``H_t (p + o_t)``.
     """
 
     frames: np.ndarray
@@ -104,6 +107,7 @@ class Burst:
     sensor: Sensor
     moving: np.ndarray | None = None
     waves: np.ndarray | None = None
+    object_offsets: np.ndarray | None = None
 
     @property
     def saturation(self) -> int:
@@ -121,6 +125,14 @@ class Burst:
         for _ in range(WAVE_ITERATIONS):  # q = H p + shift(q): a contraction for gentle waves
             q = pos + np.stack(wave_shift(self.waves[t], q[..., 0], q[..., 1]), axis=-1)
         return q
+
+    def object_positions(self, t: int) -> np.ndarray:
+        """Where frame t sees every reference pixel if it were on the moving object: ``H_t (p + o_t)``."""
+        from .motion import positions_from_homography
+
+        T = np.eye(3)
+        T[:2, 2] = self.object_offsets[t]
+        return positions_from_homography(self.homographies[t] @ T, self.frames.shape[1:])
 
 
 #: Fixed-point iterations of ``q = H p + shift(q)`` in :meth:`Burst.positions`;
@@ -334,6 +346,7 @@ def simulate_burst(
     supersample: int = 4,
     optics_sigma_px: float = 0.0,
     moving_object: float = 0.0,
+    parallax: float = 0.0,
     seed: int = 0,
 ) -> Burst:
     """Simulate a hand-held burst with known gain, motion and ideal frames.
@@ -356,6 +369,11 @@ def simulate_burst(
         Fraction of the frame covered by a textured disk that moves on its
         own (about 2 px per frame, in a random direction, plus a jitter of
         1 px) on top of the camera's motion; 0 for none.
+    parallax : float
+        With ``moving_object``: the disk is instead a nearer plane that does
+        not move on its own, its image displaced ``1 + parallax`` times as
+        far as the background's at its centre (the parallax of a camera that
+        translates; 0.5: half as near again).
     """
     h, w = shape
     if h < 2 or w < 2 or n_frames < 1:
@@ -384,7 +402,8 @@ def simulate_burst(
     gain = gain_pattern(shape, sensor, rng_gain)
     frames = np.empty((n_frames, h, w), np.uint16)
     ideal = np.empty((n_frames, h, w), np.float32)
-    obj = _moving_object(raster, moving_object, n_frames, shape, scale, margin, np.random.default_rng(rng_scene.integers(2**63)))
+    obj = _moving_object(raster, moving_object, n_frames, shape, scale, margin,
+                         np.random.default_rng(rng_scene.integers(2**63)), homographies if parallax else None, parallax)
     moving = None if obj is None else np.zeros((n_frames, h, w), bool)
     full_scale_dn = float(sensor.white_level - sensor.black_level)
     for t in range(n_frames):
@@ -407,13 +426,14 @@ def simulate_burst(
         counts = np.floor(np.clip(signal, 0.0, sensor.full_well_e) * sensor.dn_per_e + 0.5) + sensor.black_level
         frames[t] = np.clip(counts, 0, sensor.white_level)
     return Burst(frames=frames, gain=gain, ideal=ideal, homographies=homographies, sensor=sensor, moving=moving,
-                 waves=waves)
+                 waves=waves, object_offsets=None if obj is None else obj[2])
 
 
-def _moving_object(raster, fraction, n_frames, shape, scale, margin, rng):
+def _moving_object(raster, fraction, n_frames, shape, scale, margin, rng, homographies=None, parallax=0.0):
     """``(texture * alpha, alpha, offsets)`` of a disk covering ``fraction`` of the frame, or None.
 
-    ``offsets[t]`` is the object's own displacement (reference px) in frame t.
+    ``offsets[t]`` is the object's own displacement (reference px) in frame
+    t; with ``homographies``, ``parallax`` times the background's at its centre.
     """
     import cv2
 
@@ -431,6 +451,9 @@ def _moving_object(raster, fraction, n_frames, shape, scale, margin, rng):
     heading = rng.uniform(0, 2 * np.pi)
     steps = np.arange(n_frames)[:, None] * 2.0 * np.array([np.cos(heading), np.sin(heading)])
     offsets = steps + rng.normal(0.0, 1.0, (n_frames, 2))
+    if homographies is not None:
+        centred = np.array([*centre, 1.0])
+        offsets = np.array([parallax * ((H @ centred)[:2] / (H @ centred)[2] - centre) for H in homographies])
     offsets[0] = 0.0
     return texture * alpha_c, alpha, offsets
 

@@ -1,7 +1,10 @@
 """Where each frame sees what another frame sees: the motion models as maps.
 
-Two kinds, one interface. :class:`GlobalWarp` is one homography per frame
-(translation and affine are special cases). :class:`FieldWarp` adds a smooth
+Three kinds, one interface. :class:`GlobalWarp` is one homography per frame
+(translation and affine are special cases). :class:`LayeredWarp` is a few
+homographies per frame, one per scene layer (a near object's parallax, an
+object moving on its own), and a map of which layer each pixel sees: a
+dense, piecewise-planar motion. :class:`FieldWarp` adds a smooth
 displacement field per frame, in the frame's own pixels:
 
     frame t sees reference point p at q, where  q = H_t p + r_t(q)
@@ -221,9 +224,98 @@ def basis(coords: np.ndarray, length: int, cells: int) -> np.ndarray:
     return BSpline.design_matrix(x, knots, DEGREE, extrapolate=True).toarray()
 
 
-def as_warp(motion) -> GlobalWarp | FieldWarp:
+#: Label of a pixel no layer explains (an occlusion, a disagreement).
+NO_LAYER = 255
+#: Where :class:`LayeredWarp` sends a point with no trajectory: far outside
+#: every frame, so the resamplers' validity checks reject it (a NaN would
+#: compare False and pass).
+NOWHERE = -1.0e5
+
+
+@dataclass(frozen=True)
+class LayeredWarp:
+    """A homography per frame and scene layer, and the layer each pixel of each frame sees.
+
+    Frame s sees at ``q`` the point ``p = H_{s,l}^-1 q`` of layer
+    ``l = labels[s](q)``; frame t sees it at ``H_{t,l} p``. The point has no
+    trajectory (:data:`NOWHERE`) unless the reference and frame t see layer
+    ``l`` there too: it is occluded, or uncovered, in one of them.
+
+    Attributes
+    ----------
+    layers : ndarray, shape (F, L, 3, 3)
+        ``H_t_ref`` of each layer; layer 0 is the dominant one (the background).
+    labels : ndarray of uint8, shape (F, h, w)
+        The layer each frame's pixel sees (:data:`NO_LAYER`: none), on a
+        grid that may be coarser than the frames'.
+    to_labels : ndarray, shape (3, 3)
+        Frame pixels -> ``labels`` pixels.
+    to_frame : ndarray, shape (3, 3)
+        The pixels this object speaks -> frame pixels (identity unless
+        :meth:`conjugate` made it).
+    """
+
+    layers: np.ndarray
+    labels: np.ndarray
+    to_labels: np.ndarray
+    to_frame: np.ndarray = None
+
+    def __post_init__(self):
+        if self.to_frame is None:
+            object.__setattr__(self, "to_frame", np.eye(3))
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.layers)
+
+    @property
+    def homographies(self) -> np.ndarray:
+        """The dominant layer's ``H_t_ref``."""
+        return self.layers[:, 0]
+
+    def label(self, t: int, points: np.ndarray) -> np.ndarray:
+        """The layer frame t sees at frame-pixel ``points`` (nearest label pixel; beyond the grid: its edge)."""
+        g = np.rint(apply_homography(self.to_labels, points)).astype(np.int64)
+        h, w = self.labels.shape[1:]
+        return self.labels[t][np.clip(g[..., 1], 0, h - 1), np.clip(g[..., 0], 0, w - 1)]
+
+    def map_points(self, s: int, t: int, points: np.ndarray) -> np.ndarray:
+        """Where frame t sees what frame s sees at ``points`` (``(..., 2)``); :data:`NOWHERE` if nowhere."""
+        q = apply_homography(self.to_frame, np.asarray(points, np.float64).reshape(-1, 2))
+        seen = self.label(s, q)
+        out = np.full(q.shape, NOWHERE)
+        for layer in range(self.layers.shape[1]):
+            on = np.flatnonzero(seen == layer)
+            p = apply_homography(np.linalg.inv(self.layers[s, layer]), q[on])
+            moved = apply_homography(self.layers[t, layer], p)
+            ok = (self.label(0, p) == layer) & (self.label(t, moved) == layer)
+            out[on[ok]] = moved[ok]
+        own = apply_homography(np.linalg.inv(self.to_frame), out)
+        own[out[:, 0] == NOWHERE] = NOWHERE
+        return own.reshape(np.shape(points))
+
+    def pair(self, s: int, t: int, region: tuple[int, int, int, int]) -> np.ndarray:
+        """:meth:`map_points` for the pixels of ``region = (y0, x0, h, w)`` of frame s, in the region's
+        coordinates: float32 ``(h, w, 2)``."""
+        y0, x0 = region[:2]
+        moved = self.map_points(s, t, _grid(region).reshape(-1, 2)).reshape(region[2], region[3], 2)
+        nowhere = moved[..., 0] == NOWHERE
+        moved -= [x0, y0]
+        moved[nowhere] = NOWHERE
+        return moved.astype(np.float32)
+
+    def conjugate(self, S: np.ndarray) -> "LayeredWarp":
+        """The same motion in pixels ``c`` with ``S c`` = these pixels."""
+        return LayeredWarp(self.layers, self.labels, self.to_labels, self.to_frame @ np.asarray(S, np.float64))
+
+    def select(self, frames) -> "LayeredWarp":
+        frames = list(frames)
+        return LayeredWarp(self.layers[frames], self.labels[frames], self.to_labels, self.to_frame)
+
+
+def as_warp(motion) -> GlobalWarp | FieldWarp | LayeredWarp:
     """A warp object from a warp object or an ``(F, 3, 3)`` array of homographies."""
-    if isinstance(motion, (GlobalWarp, FieldWarp)):
+    if isinstance(motion, (GlobalWarp, FieldWarp, LayeredWarp)):
         return motion
     H = np.asarray(motion, np.float64)
     if H.ndim != 3 or H.shape[1:] != (3, 3) or not np.all(np.isfinite(H)):
