@@ -31,6 +31,11 @@ OUTLIER_PX = 1.0
 #: A point belongs to a secondary layer when that layer's warp predicts it
 #: within this (px) in every frame where it was tracked.
 MEMBER_PX = 0.5
+#: A layer whose points move less than this (px, median) in every frame is
+#: still on the sensor: corners of a flat area are the gain pattern's, and
+#: tracking them follows the sensor, not the scene. Such a layer says
+#: nothing about the gain and is dropped.
+STATIC_PX = 0.5
 #: Layers at most, the dominant one included.
 MAX_LAYERS = 3
 #: Parameters of a secondary layer's model per frame: a shift of the
@@ -115,13 +120,20 @@ def find_layers(src: np.ndarray, dst: np.ndarray, base: np.ndarray, *, max_layer
         if fit is None:
             break
         H, joined, model = fit
-        members[joined] = len(layers)
         candidates &= ~joined
+        if max(np.median(_distances(H[t], src[joined], src[joined])) for t in range(1, len(H))) < STATIC_PX:
+            continue  # still on the sensor: the fixed pattern itself (tracks on a flat area), not a surface
+        members[joined] = len(layers)
         layers.append(H)
         models.append(model)
     homographies = np.stack(layers, axis=1)
-    own = np.stack([_distances(homographies[t + 1, members, :, :], src, dst[t]) for t in range(len(dst))])
-    return Layers(homographies, members, models, own, sum(LAYER_PARAMS[m] for m in models), src)
+    return Layers(homographies, members, models, _own_residuals(homographies, members, src, dst),
+                  sum(LAYER_PARAMS[m] for m in models), src)
+
+
+def _own_residuals(homographies, members, src, dst) -> np.ndarray:
+    """Each point's distance from where its own layer puts it, per frame ``(F - 1, N)``."""
+    return np.stack([_distances(homographies[t + 1, members], src, dst[t]) for t in range(len(dst))])
 
 
 def _fit_layer(src, dst, base, seed, candidates):
@@ -129,7 +141,8 @@ def _fit_layer(src, dst, base, seed, candidates):
 
     Two rounds: fit on the current members, keep the candidates it predicts
     within MEMBER_PX in every frame that tracked them. The model (a shift of
-    the dominant layer or a homography) has the lower GRIC.
+    the dominant layer or a homography) has the lower GRIC, both scored with
+    the noise level the better one leaves.
     """
     need = max(MIN_POINTS, int(np.ceil(MIN_FRACTION * len(src))))
     joined = seed
@@ -140,12 +153,12 @@ def _fit_layer(src, dst, base, seed, candidates):
         fits = {name: H for name, H in fits.items() if H is not None}
         if not fits:
             return None
-        scores = {}
-        for name, H in fits.items():
-            e = np.stack([_distances(H[t + 1], src[joined], dst[t, joined]) for t in range(len(dst))])
-            n = np.isfinite(e).sum()
-            sigma2 = max(float(np.nanmedian(e**2)) / (2 * np.log(2)), 1e-8)
-            scores[name] = float(np.nansum(np.minimum(e**2 / sigma2, 4.0))) + LAYER_PARAMS[name] * len(dst) * np.log(4 * n)
+        errors = {name: np.stack([_distances(H[t + 1], src[joined], dst[t, joined]) for t in range(len(dst))])
+                  for name, H in fits.items()}
+        # one noise level for both: the tracking noise, as the better model sees it
+        sigma2 = max(min(float(np.nanmedian(e**2)) for e in errors.values()) / (2 * np.log(2)), 1e-8)
+        scores = {name: float(np.nansum(np.minimum(e**2 / sigma2, 4.0)))
+                  + LAYER_PARAMS[name] * len(dst) * np.log(4 * np.isfinite(e).sum()) for name, e in errors.items()}
         model = min(scores, key=scores.get)
         H = fits[model]
         e = np.stack([_distances(H[t + 1], src, dst[t]) for t in range(len(dst))])
@@ -154,7 +167,8 @@ def _fit_layer(src, dst, base, seed, candidates):
 
 
 def _fit_model(name, src, dst, base, members):
-    """Least-squares ``H_t_ref`` of a layer per frame (identity for the reference), or None if a frame has too few points."""
+    """A layer's ``H_t_ref`` per frame (identity for the reference), fitted robustly to ``members``
+    (a seed may hold a stray point), or None if a frame has too few of them."""
     import cv2
 
     out = [np.eye(3)]
@@ -162,16 +176,21 @@ def _fit_model(name, src, dst, base, members):
         on = members & np.isfinite(dst[t, :, 0])
         if on.sum() < (8 if name == "homography" else 1):
             return None
-        if name == "shift":  # H_base T(o): o the mean offset in reference pixels
+        if name == "shift":  # H_base T(o): o the median offset in reference pixels
             back = apply_homography(np.linalg.inv(base[t + 1]), dst[t, on])
             T = np.eye(3)
-            T[:2, 2] = np.mean(back - src[on], axis=0)
+            T[:2, 2] = np.median(back - src[on], axis=0)
             out.append(base[t + 1] @ T)
-        else:
-            H, _ = cv2.findHomography(src[on], dst[t, on], 0)
-            if H is None:
-                return None
-            out.append(H / H[2, 2])
+            continue
+        _, mask = cv2.findHomography(src[on], dst[t, on], cv2.USAC_ACCURATE, MEMBER_PX, maxIters=2000,
+                                     confidence=0.999)
+        keep = mask.ravel().astype(bool) if mask is not None else np.zeros(on.sum(), bool)
+        if keep.sum() < 8:
+            return None
+        H, _ = cv2.findHomography(src[on][keep], dst[t, on][keep], 0)  # least squares on the inliers
+        if H is None:
+            return None
+        out.append(H / H[2, 2])
     return np.stack(out)
 
 
@@ -215,7 +234,14 @@ def label_pixels(smooth: list, layers: np.ndarray, members: np.ndarray, points: 
     n, (h, w) = len(smooth), smooth[0].shape
     margin = WINDOW // 2 + int(np.ceil(2 * smoothing))
     n_layers = layers.shape[1]
-    box = lambda a: cv2.blur(a, (WINDOW, WINDOW), borderType=cv2.BORDER_REFLECT)  # noqa: E731
+    square = np.ones((WINDOW, WINDOW), np.uint8)
+
+    def box(a: np.ndarray) -> np.ndarray:
+        """Mean of ``a`` over the best of the windows holding each pixel (shiftable windows: a pixel by a
+        surface's edge is judged on a window on its own side, so the edge does not fatten the surface)."""
+        return cv2.erode(cv2.blur(a, (WINDOW, WINDOW), borderType=cv2.BORDER_REFLECT), square,
+                         borderType=cv2.BORDER_REFLECT)
+
     allowed = np.ones((n_layers, h, w), bool)  # where each layer's warp keeps the pixel in some frame
     cost = np.zeros((n_layers, h, w), np.float32)
     for layer in range(n_layers):  # mean window difference over the frames that see the pixel

@@ -390,14 +390,20 @@ def _layers_gric(layers, per_frame, base: str) -> float:
     return total
 
 
-def _layered(frames: np.ndarray, layers) -> LayeredWarp:
-    """The layered warp: every pixel of every frame labelled with the layer it sees (on the masks' grid)."""
+def _on_mask_grid(frames: np.ndarray, layers):
+    """The frames smoothed and reduced as :func:`moving_masks` compares them, the layers' homographies
+    and points in those pixels, the map to them and the reduction factor."""
     factor = mask_factor(frames.shape[1:])
     smooth, to_reduced = _reduced_smooth(frames, factor)
     reduced = np.array([[to_reduced @ H @ np.linalg.inv(to_reduced) for H in per_frame]
                         for per_frame in layers.homographies])
-    labels = label_pixels(smooth, reduced, layers.members, apply_homography(to_reduced, layers.points),
-                          smoothing=TRACK_SIGMA / factor)
+    return smooth, reduced, apply_homography(to_reduced, layers.points), to_reduced, factor
+
+
+def _layered(frames: np.ndarray, layers) -> LayeredWarp:
+    """The layered warp: every pixel of every frame labelled with the layer it sees (on the masks' grid)."""
+    smooth, reduced, points, to_reduced, factor = _on_mask_grid(frames, layers)
+    labels = label_pixels(smooth, reduced, layers.members, points, smoothing=TRACK_SIGMA / factor)
     return LayeredWarp(layers.homographies, labels, to_reduced)
 
 

@@ -146,3 +146,50 @@ def test_fit_field_recovers_a_field_and_ignores_a_moving_cluster(model):
     assert np.sqrt(np.mean(error[inside] ** 2)) < 0.025
     assert np.sqrt(np.mean(error**2)) < 0.04
     assert 8 < fit.dof < 8 + 2 * fit.coefficients[0].size
+
+
+def _two_layers():
+    """A background moving (+2, 0) and a block x >= 39.5 of a 60x80 frame moving (-3, +1) in frame 1,
+    over the background; labelled on a grid of half the frame's resolution."""
+    from gainfpn_cli.trajectory import NO_LAYER, LayeredWarp
+
+    shift = lambda dx, dy: np.array([[1.0, 0, dx], [0, 1.0, dy], [0, 0, 1.0]])  # noqa: E731
+    layers = np.array([[np.eye(3), np.eye(3)], [shift(2, 0), shift(-3, 1)]])
+    half = np.array([[0.5, 0, -0.25], [0, 0.5, -0.25], [0, 0, 1.0]])  # frame pixel -> half-resolution pixel
+    labels = np.zeros((2, 30, 40), np.uint8)
+    labels[0][:, 20:] = 1  # the reference: the block from x = 39.5 (label pixel 20)
+    labels[1][:, 18:] = 1  # frame 1: from x = 36.5, hiding the background the reference sees at 34.5 .. 39.5
+    labels[1][:, 5] = NO_LAYER  # say frame 1 sees something no layer explains at x = 9.5 .. 11.5
+    return LayeredWarp(layers, labels, half)
+
+
+def test_a_layered_warp_moves_each_pixel_with_its_layer_and_occluded_ones_nowhere():
+    from gainfpn_cli.trajectory import NOWHERE
+
+    warp = _two_layers()
+    moved = warp.map_points(0, 1, np.array([[20.0, 7.0], [50.0, 7.0], [37.0, 7.0], [8.0, 7.0]]))
+    np.testing.assert_array_equal(moved[:2], [[22.0, 7.0], [47.0, 8.0]])
+    # the background at 37 goes to 39, behind the block in frame 1; at 8 to 10, which no layer explains
+    assert np.all(moved[2:] == NOWHERE)
+    np.testing.assert_array_equal(warp.map_points(1, 0, np.array([[22.0, 7.0], [47.0, 8.0]])),
+                                  [[20.0, 7.0], [50.0, 7.0]])
+    assert np.all(warp.map_points(1, 0, np.array([[10.0, 7.0]])) == NOWHERE)
+    np.testing.assert_array_equal(warp.homographies, warp.layers[:, 0])
+
+
+def test_a_layered_warp_pair_conjugate_and_select_agree_with_its_points():
+    from gainfpn_cli.trajectory import NOWHERE
+
+    warp = _two_layers()
+    region = (3, 30, 5, 20)  # (y0, x0, h, w)
+    M = warp.pair(0, 1, region)
+    ys, xs = np.mgrid[3:8, 30:50].astype(np.float64)
+    expected = warp.map_points(0, 1, np.stack([xs, ys], axis=-1))
+    traced = expected[..., 0] != NOWHERE
+    np.testing.assert_allclose(M[traced], (expected - [30, 3])[traced], atol=1e-5)
+    assert np.all(M[~traced] == NOWHERE) and traced.any() and (~traced).any()
+    S = np.array([[2.0, 0, 0.5], [0, 2.0, 0.5], [0, 0, 1.0]])  # a coarser grid c with S c = frame pixels
+    c = np.array([[4.75, 3.25], [24.75, 3.25]])
+    np.testing.assert_allclose(warp.conjugate(S).map_points(0, 1, c),
+                               (warp.map_points(0, 1, c * 2 + 0.5) - 0.5) / 2)
+    assert warp.select([0]).n_frames == 1 and warp.select([1, 0]).labels[0][0, 5] != 0
