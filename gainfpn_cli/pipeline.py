@@ -240,6 +240,8 @@ def estimate(burst: LoadedBurst, cfg: Config, *, progress: Progress | None = Non
         "motion": {
             "model": motion.model,
             "reason": motion.reason,
+            # the layers model: each layer besides the dominant one, its model and tracked points
+            "layers": motion.layers,
             "frames": [{"frame": burst.paths[order[i + 1]].name, **{k_: v for k_, v in f.items() if k_ != "gric"}}
                        for i, f in enumerate(motion.per_frame)],
             "refine_rounds": cfg.motion.refine_rounds,

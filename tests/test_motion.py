@@ -220,3 +220,52 @@ def test_field_models_are_not_chosen_for_a_plain_shake():
         result = estimate_motion(burst.frames.astype(np.float32))
         assert result.model in ("translation", "affine", "homography"), result.reason
         assert {"rolling", "mesh"} <= set(result.per_frame[0]["gric"])
+
+
+def _layer_errors(burst, result):
+    """Worst frame's RMS trajectory error (px) and least traced fraction, off and on the object (each
+    away from its edge by 3 px, where pixels mix both), and the largest fraction of the background off
+    by more than 0.1 px."""
+    import cv2
+
+    from gainfpn_cli.trajectory import NOWHERE
+
+    obj = burst.moving[0].astype(np.uint8)
+    regions = (cv2.dilate(obj, np.ones((7, 7), np.uint8)) == 0, cv2.erode(obj, np.ones((7, 7), np.uint8)) > 0)
+    ys, xs = np.mgrid[0 : SHAPE[0], 0 : SHAPE[1]].astype(np.float64)
+    worst, traced, stray = [0.0, 0.0], [1.0, 1.0], 0.0
+    for t in range(1, len(burst.frames)):
+        est = result.warp.map_points(0, t, np.stack([xs, ys], axis=-1))
+        truth = np.where(obj[..., None] > 0, burst.object_positions(t), burst.positions(t))
+        inside = np.all((truth > 4) & (truth < [SHAPE[1] - 5, SHAPE[0] - 5]), axis=-1)
+        err = np.linalg.norm(est - truth, axis=-1)
+        has = est[..., 0] != NOWHERE
+        for i, region in enumerate(regions):
+            sel = region & inside
+            worst[i] = max(worst[i], float(np.sqrt(np.mean(err[sel & has] ** 2))))
+            traced[i] = min(traced[i], float((sel & has).sum() / sel.sum()))
+        stray = max(stray, float((err[regions[0] & inside & has] > 0.1).mean()))
+    return worst, traced, stray
+
+
+@pytest.mark.parametrize("parallax", [0.0, 1.0], ids=["own-motion", "parallax"])
+@pytest.mark.parametrize("scene", ["dead-leaves", "procedural"])
+def test_layers_follow_an_object_that_moves_apart(scene, parallax):
+    # issue 4: dense motion where one warp does not explain the scene. An object over 10 % of the frame
+    # moves on its own, or is a nearer plane (parallax 1.0: displaced twice as far as the background).
+    # Measured over seeds 3-10 (seed 11 held out), worst frame of 6: background 0.009-0.16 px on dead
+    # leaves (0.05 px or less in 12 of 16 bursts); on the smooth procedural scene 0.03-0.41 px, from flat
+    # background by the object's edge that takes its layer (0-0.8 % of the background off by > 0.1 px;
+    # 3.1 and 11 % in two bursts whose background motion itself was off by 0.1-0.2 px); the object 0.05 px
+    # or less in 24 of 32 bursts (0.053-0.48 px in the rest), 16-95 % of its pixels traced (the rest
+    # hidden in some frame, or by its edge).
+    burst = simulate_burst(shape=SHAPE, n_frames=6, seed=11, moving_object=0.1, parallax=parallax, scene=scene)
+    result = estimate_motion(burst.frames.astype(np.float32))
+    assert result.model == "layers" and len(result.layers) == 1, result.reason
+    (background, on_object), traced, stray = _layer_errors(burst, result)
+    assert on_object <= 0.05 and traced[1] >= 0.8
+    assert traced[0] >= 0.9
+    if scene == "dead-leaves":
+        assert background <= 0.05
+    else:
+        assert stray <= 0.01
