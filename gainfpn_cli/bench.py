@@ -40,12 +40,15 @@ class BurstSpec:
     supersample: int = 4
     wobble_px: float = 0.0
     distortion_px: float = 0.0
+    parallax: float = 0.0  # a nearer plane over 10 % of the frame, displaced 1 + parallax times as far
 
     @property
     def key(self) -> str:
         h, w = self.shape
         waves = f"-w{self.wobble_px:g}-d{self.distortion_px:g}" if self.wobble_px or self.distortion_px else ""
-        return f"{w}x{h}-f{self.n_frames}-s{self.seed}-{self.scene}-c{self.fpn_column:g}-ss{self.supersample}{waves}"
+        near = f"-p{self.parallax:g}" if self.parallax else ""
+        return (f"{w}x{h}-f{self.n_frames}-s{self.seed}-{self.scene}-c{self.fpn_column:g}-ss{self.supersample}"
+                f"{waves}{near}")
 
     @property
     def megapixels(self) -> float:
@@ -107,6 +110,9 @@ def _all_points(quick: bool) -> list[Point]:
         burst = dataclasses.replace(base, **{f"{wave}_px": 1.0})
         points += [Point("motion_model", f"{wave} 1 px, {model}", burst, overrides={"motion.model": model})
                    for model in ("auto", "homography")]
+    near = dataclasses.replace(base, parallax=1.0)  # a nearer plane: the layers model against one warp
+    points += [Point("motion_model", f"parallax 1.0, {model}", near, overrides={"motion.model": model})
+               for model in ("auto", "homography")]
     points += [Point("refine", "1 refinement round", base, overrides={"motion.refine_rounds": 1})]
     points += [Point("scene", "procedural (smoother)", dataclasses.replace(base, scene="procedural"))]
     points += [Point("scene", "3 % pixel + 4 % column", dataclasses.replace(base, fpn_column=0.04))]
@@ -171,7 +177,8 @@ def _make_burst(spec: BurstSpec, folder: Path) -> None:
     sensor = _sensor(spec)
     shake = Shake(wobble_px=spec.wobble_px, distortion_px=spec.distortion_px)
     burst = simulate_burst(shape=spec.shape, n_frames=spec.n_frames, seed=spec.seed, scene=spec.scene,
-                           sensor=sensor, supersample=spec.supersample, shake=shake)
+                           sensor=sensor, supersample=spec.supersample, shake=shake,
+                           moving_object=0.1 if spec.parallax else 0.0, parallax=spec.parallax)
     save_burst(burst, folder, fmt="exr", parameters=dataclasses.asdict(spec))
 
 
