@@ -288,20 +288,24 @@ def _decide(cost: np.ndarray) -> np.ndarray:
     """
     import cv2
 
-    order = np.sort(cost, axis=0)
     best = np.argmin(cost, axis=0).astype(np.uint8)
     if cost.shape[0] == 1:
         return best
-    finite = np.isfinite(order[0])
-    typical = float(np.median(order[0][finite])) if finite.any() else 0.0
+    lowest, runner_up = np.full(cost.shape[1:], np.inf, np.float32), np.full(cost.shape[1:], np.inf, np.float32)
+    for c in cost:  # the two lowest costs (a sort along a short first axis is slow)
+        runner_up = np.minimum(runner_up, np.maximum(lowest, c))
+        lowest = np.minimum(lowest, c)
+    finite = np.isfinite(lowest)
+    typical = float(np.median(lowest[finite])) if finite.any() else 0.0
     with np.errstate(invalid="ignore"):  # inf - inf where no layer sees the pixel
-        clear = finite & (order[1] >= 2 * order[0]) & (order[1] - order[0] > typical)
+        clear = finite & (runner_up >= 2 * lowest) & (runner_up - lowest > typical)
     if clear.all():
         return best
     distance = np.stack([cv2.distanceTransform((~(clear & (best == layer))).astype(np.uint8), cv2.DIST_L2, 5)
                          for layer in range(cost.shape[0])])
-    near = np.sort(distance, axis=0)
-    filled = np.where(near[0] <= 0.5 * near[1], np.argmin(distance, axis=0), NO_LAYER).astype(np.uint8)
+    nearest = np.argmin(distance, axis=0)
+    other = np.min(np.where(np.arange(len(distance))[:, None, None] == nearest, np.inf, distance), axis=0)
+    filled = np.where(np.min(distance, axis=0) <= 0.5 * other, nearest, NO_LAYER).astype(np.uint8)
     return np.where(clear, best, filled)
 
 
