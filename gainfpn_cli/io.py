@@ -149,6 +149,8 @@ def read_frame(path: str | os.PathLike) -> Frame:
 
 
 def _check_finite(data: np.ndarray, path: Path) -> None:
+    if np.isfinite(data).all():
+        return
     bad = ~np.isfinite(data)
     if bad.any():
         row, col, _ = np.argwhere(bad)[0]
@@ -210,7 +212,8 @@ def read_exr(path: Path) -> Frame:
         _check_cfa(info.cfa, path)
         if len(picked) != 1:
             raise InputError(f"{path}: a CFA mosaic ({info.cfa}) must have one channel, has {len(picked)}")
-    return Frame(np.ascontiguousarray(pixels[:, :, picked]), info)
+    every = picked == list(range(pixels.shape[2]))  # a fancy index copies the frame
+    return Frame(pixels if every else np.ascontiguousarray(pixels[:, :, picked]), info)
 
 
 def _oiio_error(message: str) -> str:
