@@ -45,6 +45,10 @@ LAYER_PARAMS = {"shift": 2, "homography": 8}
 #: Side (px, on the labelling grid) of the window whose mean absolute
 #: difference decides a pixel's layer.
 WINDOW = 7
+#: A pixel whose layer is not clear takes that of the nearest clear pixel
+#: if it is at most this fraction as far as the nearest clear pixel of any
+#: other layer.
+FILL_RATIO = 0.5
 #: A frame's pixel sees no layer when its best window difference exceeds
 #: this many times the frame's median best difference (occluded in one of
 #: the two frames, or not rigid).
@@ -305,7 +309,7 @@ def _decide(cost: np.ndarray) -> np.ndarray:
                          for layer in range(cost.shape[0])])
     nearest = np.argmin(distance, axis=0)
     other = np.min(np.where(np.arange(len(distance))[:, None, None] == nearest, np.inf, distance), axis=0)
-    filled = np.where(np.min(distance, axis=0) <= 0.5 * other, nearest, NO_LAYER).astype(np.uint8)
+    filled = np.where(np.min(distance, axis=0) <= FILL_RATIO * other, nearest, NO_LAYER).astype(np.uint8)
     return np.where(clear, best, filled)
 
 
