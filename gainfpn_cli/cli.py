@@ -7,6 +7,9 @@ removed; anything else is a bug and keeps its traceback.
 
 from __future__ import annotations
 
+import contextlib
+import os
+
 import signal
 from pathlib import Path
 
@@ -55,6 +58,12 @@ def main() -> None:
     choose per-pixel gains so that corrected brightness stays constant along
     each motion trajectory.
     """
+    # BLAS single-threaded (before NumPy loads it): a threaded dot product sums in an order that depends on
+    # the thread count, so an in-process solve would differ in the last bits from one in a worker process
+    # or on a Dask worker (measured: 78 pixels' confidence off by 1 ulp at 320x240). OpenCV's own threads
+    # change no result and stay on.
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(var, "1")
 
 
 def _parse_size(ctx, param, value: str) -> tuple[int, int]:
@@ -178,9 +187,11 @@ def _close(progress) -> None:
 @click.option("--reference", type=click.IntRange(0), help="Index of the reference frame.")
 @click.option("--dark", type=click.Path(exists=True, dir_okay=False), help="Master dark frame to subtract.")
 @click.option("--overwrite", is_flag=True, help="Replace the results in a non-empty output directory.")
+@click.option("--scheduler", metavar="ADDRESS",
+              help="Solve the blocks on this Dask cluster (e.g. tcp://host:8786) instead of local processes.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress bars.")
 def estimate(inputs, out_dir, config_path, preset, method, workers, block_size, lam, reference, dark, overwrite,
-             quiet):
+             scheduler, quiet):
     """Estimate the gain map k from a moving burst and correct its frames.
 
     INPUTS are EXR or RAW files, directories or glob patterns. Writes
@@ -198,12 +209,19 @@ def estimate(inputs, out_dir, config_path, preset, method, workers, block_size, 
         "input.reference": reference, "input.dark": dark})
     check_out_dir(out_dir, overwrite)
     progress = _tqdm_progress(quiet)
-    try:
-        burst = load_burst(inputs, cfg, progress=progress)
-        result = run_estimate(burst, cfg, progress=progress)
-        write_estimate(result, burst, cfg, out_dir, overwrite=overwrite, progress=progress)
-    finally:
-        _close(progress)
+    with contextlib.ExitStack() as stack:
+        if scheduler:
+            from .batch import connect
+            from .parallel import dask_backend
+
+            client = stack.enter_context(connect(scheduler))
+            stack.enter_context(dask_backend(client))
+        try:
+            burst = load_burst(inputs, cfg, progress=progress)
+            result = run_estimate(burst, cfg, progress=progress)
+            write_estimate(result, burst, cfg, out_dir, overwrite=overwrite, progress=progress)
+        finally:
+            _close(progress)
     for warning in result.warnings:
         click.echo(f"Warning: {warning}", err=True)
     r = result.report
@@ -213,6 +231,57 @@ def estimate(inputs, out_dir, config_path, preset, method, workers, block_size, 
                f"{100 * r['estimated_fraction']:.0f}% of pixels estimated"
                + (f", predicted residual FPN {predicted:.2f}%" if predicted is not None else "")
                + f" -> {out_dir}")
+
+
+@main.command()
+@click.argument("manifest", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option("-o", "--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
+              help="Output directory: one folder per burst, and summary.csv / summary.json.")
+@click.option("--scheduler", metavar="ADDRESS", help="Run the bursts on this Dask cluster (tcp://host:8786).")
+@click.option("--local-cluster", "local_workers", type=click.IntRange(1), metavar="N",
+              help="Run the bursts on a Dask cluster of N local processes.")
+@click.option("-q", "--quiet", is_flag=True, help="No progress bar.")
+def batch(manifest, out_dir, scheduler, local_workers, quiet):
+    """Estimate every burst of MANIFEST, each into OUT/NAME, and summarise them.
+
+    MANIFEST is YAML: `bursts:` a list of `{name: NAME, inputs: PATH_OR_GLOB,
+    config: OPTIONAL_YAML}` (paths relative to the manifest). Bursts already
+    done in OUT are skipped, so an interrupted batch is resumed by running
+    it again. A failing burst is reported and does not stop the others.
+    Without --scheduler or --local-cluster the bursts run here, one after
+    another. Exit status: 0 if every burst is done, 1 if any failed.
+    """
+    from .batch import connect, load_manifest, local_cluster, run_batch
+
+    if scheduler and local_workers:
+        raise click.UsageError("give --scheduler or --local-cluster, not both")
+    jobs = load_manifest(manifest)
+    bar = None
+    if not quiet:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(jobs), desc="bursts", unit="burst", leave=False, dynamic_ncols=True)
+    with contextlib.ExitStack() as stack:
+        client = None
+        if scheduler:
+            client = stack.enter_context(connect(scheduler))
+        elif local_workers:
+            client = local_cluster(local_workers)
+            stack.callback(client.cluster.close)  # after the client (last in, first out)
+            stack.enter_context(client)
+        try:
+            rows = run_batch(jobs, out_dir, client=client, progress=(lambda _: bar.update(1)) if bar else None)
+        finally:
+            if bar:
+                bar.close()
+    failed = [r for r in rows if r["status"] == "failed"]
+    for row in failed:
+        click.echo(f"Error: {row['name']}: {row['message']}", err=True)
+    done = len(rows) - len(failed)
+    click.echo(f"{done} of {len(rows)} bursts done ({sum(r['status'] == 'done earlier' for r in rows)} earlier), "
+               f"{len(failed)} failed -> {out_dir / 'summary.csv'}")
+    if failed:
+        raise SystemExit(1)
 
 
 @main.command()

@@ -1,4 +1,9 @@
-"""Run independent tasks on local processes, in order, with progress.
+"""Run independent tasks on local processes (or a Dask cluster), in order, with progress.
+
+Inside :func:`dask_backend` the tasks go to a Dask cluster instead (each
+task computes exactly what it computes locally: results are bit-identical
+when the cluster's workers run their native libraries single-threaded, as
+:func:`batch.local_cluster` starts them).
 
 The pool is ``multiprocessing.Pool``, whose ``terminate`` stops the workers
 at once on an error or an interrupt. It uses the ``spawn`` start method:
@@ -12,8 +17,9 @@ before numpy loads its BLAS.
 
 from __future__ import annotations
 
+import contextlib
 import os
-from typing import Callable, Iterable, Sequence, TypeVar
+from typing import Callable, Iterable, Iterator, Sequence, TypeVar
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -43,6 +49,8 @@ def map_ordered(
     """
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
+    if _DASK_CLIENT is not None:
+        return _on_dask(_DASK_CLIENT, fn, tasks, progress)
     if workers == 1 or len(tasks) <= 1:
         return list(_serial(fn, tasks, progress))
     import multiprocessing as mp
@@ -78,3 +86,33 @@ def _serial(fn: Callable[[T], R], tasks: Iterable[T], progress) -> Iterable[R]:
         if progress:
             progress(1)
         yield result
+
+
+#: The Dask client :func:`map_ordered` sends tasks to, inside :func:`dask_backend`.
+_DASK_CLIENT = None
+
+
+@contextlib.contextmanager
+def dask_backend(client) -> Iterator[None]:
+    """Within this block :func:`map_ordered` runs its tasks on ``client``'s cluster (``workers`` is ignored)."""
+    global _DASK_CLIENT
+    saved, _DASK_CLIENT = _DASK_CLIENT, client
+    try:
+        yield
+    finally:
+        _DASK_CLIENT = saved
+
+
+def _on_dask(client, fn, tasks, progress) -> list:
+    """``[fn(t) for t in tasks]`` on a Dask cluster, in task order; the futures are cancelled on any error."""
+    futures = client.map(fn, list(tasks), pure=False)
+    try:
+        results = []
+        for future in futures:
+            results.append(future.result())
+            if progress:
+                progress(1)
+        return results
+    except BaseException:
+        client.cancel(futures)
+        raise

@@ -47,7 +47,9 @@ def test_groups_select_points_and_unknown_groups_are_named():
     # motion no single warp explains: the automatic choice against a forced homography, on the same bursts
     waves = {p.label: p.burst for p in chosen if p.burst.wobble_px or p.burst.distortion_px}
     assert waves["wobble 1 px, auto"] == waves["wobble 1 px, homography"] != waves["distortion 1 px, auto"]
-    assert len({p.burst.key for p in chosen}) == 3  # the keys tell the bursts apart
+    near = {p.label: p.burst for p in chosen if p.burst.parallax}
+    assert near["parallax 1.0, auto"] == near["parallax 1.0, homography"] and len(near) == 2
+    assert len({p.burst.key for p in chosen}) == 4  # the keys tell the bursts apart (plain, wobble, distortion, near)
     with pytest.raises(ValueError, match="unknown bench group.*nope.*motion_model"):
         bench.plan(True, ("nope",))
     result = CliRunner().invoke(main, ["bench", "--quick", "--group", "nope", "-o", "unused"])
