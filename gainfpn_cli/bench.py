@@ -41,14 +41,16 @@ class BurstSpec:
     wobble_px: float = 0.0
     distortion_px: float = 0.0
     parallax: float = 0.0  # a nearer plane over 10 % of the frame, displaced 1 + parallax times as far
+    sensor: str = SENSOR  # a simulate.PRESETS name; one with a CFA is written as DNG
 
     @property
     def key(self) -> str:
         h, w = self.shape
         waves = f"-w{self.wobble_px:g}-d{self.distortion_px:g}" if self.wobble_px or self.distortion_px else ""
         near = f"-p{self.parallax:g}" if self.parallax else ""
+        sensor = "" if self.sensor == SENSOR else f"-{self.sensor}"
         return (f"{w}x{h}-f{self.n_frames}-s{self.seed}-{self.scene}-c{self.fpn_column:g}-ss{self.supersample}"
-                f"{waves}{near}")
+                f"{waves}{near}{sensor}")
 
     @property
     def megapixels(self) -> float:
@@ -130,6 +132,8 @@ def _all_points(quick: bool) -> list[Point]:
     # issue 5's memory target: 12 MP x 16 frames within 4 GiB
     points.append(Point("scaling_frames", "balanced, 16 frames, 12 MP",
                         BurstSpec(shape=(3000, 4000), n_frames=16, supersample=2), preset="balanced"))
+    points.append(Point("scaling_frames", "balanced, 16 frames, 12 MP, 12-bit RGGB DNG",
+                        BurstSpec(shape=(3000, 4000), n_frames=16, supersample=2, sensor="raw12"), preset="balanced"))
     return points
 
 
@@ -166,7 +170,7 @@ def _sensor(spec: BurstSpec):
     """The bench sensor; with column FPN, 3 % pixel + the column part (METHOD.md section 4's second case)."""
     from .simulate import PRESETS, with_overrides
 
-    return with_overrides(PRESETS[SENSOR], fpn_pixel=0.03 if spec.fpn_column else None,
+    return with_overrides(PRESETS[spec.sensor], fpn_pixel=0.03 if spec.fpn_column else None,
                           fpn_column=spec.fpn_column or None)
 
 
@@ -179,7 +183,7 @@ def _make_burst(spec: BurstSpec, folder: Path) -> None:
     burst = simulate_burst(shape=spec.shape, n_frames=spec.n_frames, seed=spec.seed, scene=spec.scene,
                            sensor=sensor, supersample=spec.supersample, shake=shake,
                            moving_object=0.1 if spec.parallax else 0.0, parallax=spec.parallax)
-    save_burst(burst, folder, fmt="exr", parameters=dataclasses.asdict(spec))
+    save_burst(burst, folder, fmt="dng" if sensor.cfa else "exr", parameters=dataclasses.asdict(spec))
 
 
 class _TreePeak:
