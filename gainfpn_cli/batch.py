@@ -206,19 +206,11 @@ def local_cluster(n_workers: int):
     """A Dask client on a cluster of ``n_workers`` local processes on loopback, one thread each and
     their native libraries single-threaded (as :mod:`parallel`'s workers: results are bit-identical)."""
     distributed = import_distributed()
-    from .parallel import _THREAD_VARS
+    from .parallel import single_threaded_children
 
-    saved = {var: os.environ.get(var) for var in _THREAD_VARS}
-    os.environ.update({var: "1" for var in _THREAD_VARS})  # the nannies inherit it, and pass it on to restarts
-    try:
+    with single_threaded_children():  # the nannies inherit it, and pass it on to the workers they restart
         cluster = distributed.LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
                                            host="127.0.0.1", dashboard_address=None)
-    finally:
-        for var, value in saved.items():
-            if value is None:
-                os.environ.pop(var, None)
-            else:
-                os.environ[var] = value
     return distributed.Client(cluster)
 
 

@@ -55,16 +55,8 @@ def map_ordered(
         return list(_serial(fn, tasks, progress))
     import multiprocessing as mp
 
-    saved = {var: os.environ.get(var) for var in _THREAD_VARS}
-    os.environ.update({var: "1" for var in _THREAD_VARS})  # inherited by the spawned children
-    try:
+    with single_threaded_children():
         pool = mp.get_context("spawn").Pool(min(workers, len(tasks)), initializer=_init_worker)
-    finally:
-        for var, value in saved.items():
-            if value is None:
-                os.environ.pop(var, None)
-            else:
-                os.environ[var] = value
     try:
         results = []
         for result in pool.imap(fn, tasks):  # in task order, as each completes in turn
@@ -78,6 +70,22 @@ def map_ordered(
         pool.terminate()
         pool.join()
         raise
+
+
+@contextlib.contextmanager
+def single_threaded_children() -> Iterator[None]:
+    """Within this block, processes started inherit single-threaded native libraries (BLAS, OpenMP,
+    OpenCV); this process's environment is restored after."""
+    saved = {var: os.environ.get(var) for var in _THREAD_VARS}
+    os.environ.update({var: "1" for var in _THREAD_VARS})
+    try:
+        yield
+    finally:
+        for var, value in saved.items():
+            if value is None:
+                os.environ.pop(var, None)
+            else:
+                os.environ[var] = value
 
 
 def _serial(fn: Callable[[T], R], tasks: Iterable[T], progress) -> Iterable[R]:
