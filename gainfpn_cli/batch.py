@@ -161,10 +161,7 @@ def run_batch(jobs: list[Job], out: str | os.PathLike, *, client=None, solver_wo
             if progress:
                 progress(rows[-1])
     else:
-        rows = _on_cluster(client, jobs, out)
-        if progress:
-            for row in rows:
-                progress(row)
+        rows = _on_cluster(client, jobs, out, progress)
     for job in jobs:  # a worker killed while writing leaves its staging folder behind
         for stale in out.glob(f".{job.name}.tmp-*"):
             shutil.rmtree(stale, ignore_errors=True)
@@ -172,7 +169,7 @@ def run_batch(jobs: list[Job], out: str | os.PathLike, *, client=None, solver_wo
     return rows
 
 
-def _on_cluster(client, jobs: list[Job], out: Path) -> list[dict]:
+def _on_cluster(client, jobs: list[Job], out: Path, progress) -> list[dict]:
     """Each burst a Dask task (its solver on one process: a Dask worker is the unit of parallelism)."""
     # keywords through partial: Client.map's own `workers=` would restrict the tasks to a worker so named
     task = functools.partial(run_burst, out=str(out.absolute()), solver_workers=1)
@@ -184,6 +181,8 @@ def _on_cluster(client, jobs: list[Job], out: Path) -> list[dict]:
                 rows.append(future.result())
             except Exception as exc:  # noqa: BLE001 -- a bug or a lost task: report it, keep the others
                 rows.append(_failed(job.name, f"{type(exc).__name__}: {exc}"))
+            if progress:
+                progress(rows[-1])
     except BaseException:
         client.cancel(futures)
         raise

@@ -8,7 +8,7 @@ from gainfpn_cli import io, metrics
 from gainfpn_cli.cli import main
 from gainfpn_cli.config import Config, load_config
 from gainfpn_cli.pipeline import estimate, load_burst, write_estimate
-from gainfpn_cli.simulate import PRESETS, Shake, simulate_burst, with_overrides
+from gainfpn_cli.simulate import Shake, simulate_burst
 from gainfpn_cli.truth import save_burst
 
 
