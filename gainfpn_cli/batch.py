@@ -100,9 +100,9 @@ def run_burst(job: Job, out: str | os.PathLike, *, solver_workers: int | None = 
     from .pipeline import estimate, load_burst, write_estimate
 
     folder = Path(out) / job.name
-    if (folder / "report.json").is_file():
-        row = _row(job.name, json.loads((folder / "report.json").read_text(encoding="utf-8")), 0.0)
-        return {**row, "status": "done earlier"}
+    if (folder / "report.json").is_file():  # the folder is renamed into place only when complete
+        report = json.loads((folder / "report.json").read_text(encoding="utf-8"))
+        return {**_row(job.name, report, sum(report["timings"].values())), "status": "done earlier"}
     t0 = time.perf_counter()
     try:
         cfg = load_config(job.config, overrides={"solver.workers": solver_workers})
