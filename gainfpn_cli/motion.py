@@ -350,8 +350,8 @@ def estimate_motion(
     if chosen == "layers":
         warp = _layered(frames, layers)
         for t, info in enumerate(per_frame, start=1):
-            e = layers.residuals[t - 1]
-            info["rms"]["layers"] = float(np.sqrt(np.nanmean(np.where(e < INLIER_PX, e, np.nan) ** 2)))
+            kept = layers.residuals[t - 1][layers.residuals[t - 1] < INLIER_PX]  # as the other models: inliers
+            info["rms"]["layers"] = float(np.sqrt(np.mean(kept**2))) if kept.size else None
     else:
         warp = _assemble(fits, chosen, shape)
     for t, info in enumerate(per_frame, start=1):
@@ -383,6 +383,8 @@ def _layers_gric(layers, per_frame, base: str) -> float:
         costs = []
         for layer in range(layers.n_layers):
             own = e[(layers.members == layer) & np.isfinite(e)]
+            if own.size == 0:  # none of the layer's points tracked in this frame
+                continue
             sigma2 = info["sigma2"] if layer == 0 else max(_noise_variance(own), info["sigma2"])
             costs.append(np.minimum(own**2 / sigma2, 4.0))
         params = MODEL_PARAMS[base] + layers.params + (layers.n_layers - 1)
@@ -390,19 +392,14 @@ def _layers_gric(layers, per_frame, base: str) -> float:
     return total
 
 
-def _on_mask_grid(frames: np.ndarray, layers):
-    """The frames smoothed and reduced as :func:`moving_masks` compares them, the layers' homographies
-    and points in those pixels, the map to them and the reduction factor."""
+def _layered(frames: np.ndarray, layers) -> LayeredWarp:
+    """The layered warp: every pixel of every frame labelled with the layer it sees, on the grid
+    :func:`moving_masks` compares frames on (smoothed, reduced)."""
     factor = mask_factor(frames.shape[1:])
     smooth, to_reduced = _reduced_smooth(frames, factor)
     reduced = np.array([[to_reduced @ H @ np.linalg.inv(to_reduced) for H in per_frame]
                         for per_frame in layers.homographies])
-    return smooth, reduced, apply_homography(to_reduced, layers.points), to_reduced, factor
-
-
-def _layered(frames: np.ndarray, layers) -> LayeredWarp:
-    """The layered warp: every pixel of every frame labelled with the layer it sees (on the masks' grid)."""
-    smooth, reduced, points, to_reduced, factor = _on_mask_grid(frames, layers)
+    points = apply_homography(to_reduced, layers.points)
     labels = label_pixels(smooth, reduced, layers.members, points, smoothing=TRACK_SIGMA / factor)
     return LayeredWarp(layers.homographies, labels, to_reduced)
 
