@@ -230,9 +230,9 @@ def label_pixels(smooth: list, layers: np.ndarray, members: np.ndarray, points: 
     ndarray of uint8, shape (F, h, w)
         The reference: the layer whose warps best predict the pixel's
         window, on average over the other frames that see it. Frame t: the
-        layer whose warp best
-        predicts it from the reference, among those the reference sees
-        there; :data:`trajectory.NO_LAYER` where none does, or only badly.
+        layer whose warp best predicts it from the reference, among those
+        the reference sees there; :data:`trajectory.NO_LAYER` where none
+        does, or only badly.
     """
     import cv2
 
