@@ -18,13 +18,13 @@ import io as _io
 import json
 import os
 import re
-import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
 from .errors import ConfigError, GainFPNError, InputError
+from .io import remove_staging
 
 #: Columns of summary.csv (summary.json holds the same rows).
 COLUMNS = ("name", "status", "frames", "motion_model", "fpn_models", "input_fpn_pixel_percent",
@@ -48,15 +48,16 @@ def load_manifest(path: str | os.PathLike) -> list[Job]:
     ``inputs`` is a path, a glob or a list of them; it and ``config`` are
     relative to the manifest's folder. Errors name the manifest and the key.
     """
-    import yaml
+    from .config import load_yaml
 
     path = Path(path)
     try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+        text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read ({exc.strerror or exc})") from None
-    except (yaml.YAMLError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"{path}: not valid YAML ({' '.join(str(exc).split())})") from None
+    except UnicodeDecodeError:
+        raise ConfigError(f"{path}: not valid YAML (not UTF-8 text)") from None
+    data = load_yaml(text, source=str(path))
     if not isinstance(data, dict) or set(data) != {"bursts"}:
         raise ConfigError(f"{path}: must be a mapping with the one key 'bursts'")
     bursts = data["bursts"]
@@ -163,8 +164,7 @@ def run_batch(jobs: list[Job], out: str | os.PathLike, *, client=None, solver_wo
     else:
         rows = _on_cluster(client, jobs, out, progress)
     for job in jobs:  # a worker killed while writing leaves its staging folder behind
-        for stale in out.glob(f".{job.name}.tmp-*"):
-            shutil.rmtree(stale, ignore_errors=True)
+        remove_staging(out / job.name)
     write_summary(rows, out)
     return rows
 

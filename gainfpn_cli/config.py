@@ -237,15 +237,21 @@ def _merge(obj: Any, data: Any, *, source: str, prefix: str = "") -> Any:
     return dataclasses.replace(obj, **changes)
 
 
-def parse_config(text: str, *, source: str = "<config>", base: Config | None = None) -> Config:
-    """Apply YAML ``text`` on top of ``base`` (default: the built-in defaults)."""
+def load_yaml(text: str, *, source: str):
+    """``yaml.safe_load`` of ``text``; a syntax error becomes a one-line :class:`ConfigError` naming
+    ``source`` and the line."""
     try:
-        data = yaml.safe_load(text)
+        return yaml.safe_load(text)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         at = f" (line {mark.line + 1})" if mark is not None else ""
         problem = " ".join(str(getattr(exc, "problem", None) or exc).split())  # one line, whatever YAML says
         raise ConfigError(f"{source}: not valid YAML{at}: {problem}") from None
+
+
+def parse_config(text: str, *, source: str = "<config>", base: Config | None = None) -> Config:
+    """Apply YAML ``text`` on top of ``base`` (default: the built-in defaults)."""
+    data = load_yaml(text, source=source)
     return _merge(base or Config(), {} if data is None else data, source=source)
 
 

@@ -387,7 +387,7 @@ def staged_directory(out_dir: str | os.PathLike) -> Iterator[Path]:
     and never mixed with an earlier run's.
     """
     out_dir = Path(out_dir)
-    tmp = out_dir.parent / f".{out_dir.name}.tmp-{os.getpid()}"
+    tmp = _staging(out_dir, str(os.getpid()))
     shutil.rmtree(tmp, ignore_errors=True)
     try:
         tmp.mkdir()
@@ -403,6 +403,18 @@ def staged_directory(out_dir: str | os.PathLike) -> Iterator[Path]:
         os.replace(out_dir, old)
     os.replace(tmp, out_dir)
     shutil.rmtree(old, ignore_errors=True)
+
+
+def _staging(out_dir: Path, pid: str) -> Path:
+    return out_dir.parent / f".{out_dir.name}.tmp-{pid}"
+
+
+def remove_staging(out_dir: str | os.PathLike) -> None:
+    """Remove the staging folders of ``out_dir`` that processes killed mid-write left behind
+    (:func:`staged_directory` removes its own on any exception it sees)."""
+    out_dir = Path(out_dir)
+    for stale in out_dir.parent.glob(_staging(out_dir, "*").name):
+        shutil.rmtree(stale, ignore_errors=True)
 
 
 def write_text(path: str | os.PathLike, text: str) -> None:

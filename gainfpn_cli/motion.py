@@ -499,10 +499,10 @@ def moving_masks(frames: np.ndarray, motion, *, factor: int | None = None) -> np
     frames = np.asarray(frames, np.float32)
     n, h, w = frames.shape
     factor = mask_factor((h, w)) if factor is None else int(factor)
-    size = (max(1, w // factor), max(1, h // factor))
-    sx, sy = size[0] / w, size[1] / h
     lo, hi = np.percentile(frames[0], [0.5, 99.5])
     smooth, to_reduced = _reduced_smooth(frames, factor)
+    size = smooth[0].shape[::-1]  # (w, h) of the reduced frames
+    sx, sy = to_reduced[0, 0], to_reduced[1, 1]
     track = [to_uint8(f, lo, hi) for f in smooth]  # tracking_image without blurring twice
     grid = np.stack(np.meshgrid(np.arange(size[0], dtype=np.float64), np.arange(size[1], dtype=np.float64)), axis=-1)
     dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
