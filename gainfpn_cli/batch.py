@@ -97,7 +97,6 @@ def run_burst(job: Job, out: str | os.PathLike, *, solver_workers: int | None = 
     an interrupt or a bug raises.
     """
     from .config import load_config
-    from .io import find_frames
     from .pipeline import estimate, load_burst, write_estimate
 
     folder = Path(out) / job.name
@@ -107,7 +106,7 @@ def run_burst(job: Job, out: str | os.PathLike, *, solver_workers: int | None = 
     t0 = time.perf_counter()
     try:
         cfg = load_config(job.config, overrides={"solver.workers": solver_workers})
-        burst = load_burst(find_frames(job.inputs), cfg)
+        burst = load_burst(job.inputs, cfg)  # as `estimate` reads its INPUTS
         result = estimate(burst, cfg)
         write_estimate(result, burst, cfg, folder, overwrite=True)
     except GainFPNError as exc:
