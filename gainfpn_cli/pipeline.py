@@ -214,9 +214,10 @@ def estimate(burst: LoadedBurst, cfg: Config, *, progress: Progress | None = Non
     scaled = dataclasses.replace(burst, saturation=saturation)
     solve_cfg = dataclasses.replace(cfg, solver=dataclasses.replace(cfg.solver, lam=cfg.solver.lam / scale**2))  # DN^2
     k, confidence, plane_reports = _solve_planes(scaled, solve_frames[:n_fit], fit, solve_cfg, progress)
-    for _ in range(cfg.motion.refine_rounds):
+    for round_ in range(1, cfg.motion.refine_rounds + 1):
         corrected, _ = _motion_images(frames * k[None], burst.cfa)
-        motion = estimate_motion(corrected, model=motion.model)
+        reason = f"{motion.reason}; refined on frames corrected by k (round {round_})"
+        motion = dataclasses.replace(estimate_motion(corrected, model=motion.model), reason=reason)
         in_frame = motion.warp.conjugate(np.linalg.inv(S_motion))
         solve_frames, moving = _mask_moving(frames, corrected, motion.warp, burst.cfa, cfg)
         fit = in_frame.select(range(n_fit))
@@ -242,7 +243,8 @@ def estimate(burst: LoadedBurst, cfg: Config, *, progress: Progress | None = Non
             "reason": motion.reason,
             # the layers model: each layer besides the dominant one, its model and tracked points
             "layers": motion.layers,
-            "frames": [{"frame": burst.paths[order[i + 1]].name, **{k_: v for k_, v in f.items() if k_ != "gric"}}
+            "frames": [{"frame": burst.paths[order[i + 1]].name, **{k_: v for k_, v in f.items() if k_ != "gric"},
+                        "homography": _frame_homography(motion.homographies[i + 1], S_motion)}
                        for i, f in enumerate(motion.per_frame)],
             "refine_rounds": cfg.motion.refine_rounds,
             # per frame, reference first: pixels left out because they do not follow the global motion
@@ -259,6 +261,12 @@ def estimate(burst: LoadedBurst, cfg: Config, *, progress: Progress | None = Non
         "warnings": warnings,
     }
     return Estimate(k.astype(np.float32), confidence.astype(np.float32), report, warnings)
+
+
+def _frame_homography(H: np.ndarray, S: np.ndarray) -> list:
+    """``H_t_ref`` of the motion images in frame pixels (mosaic photosites for RAW), as nested lists."""
+    H = np.asarray(S) @ H @ np.linalg.inv(S)
+    return (H / H[2, 2]).tolist()
 
 
 def _scale(frame: np.ndarray) -> float:

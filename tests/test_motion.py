@@ -1,6 +1,9 @@
+from pathlib import Path
+
 import numpy as np
 import pytest
 
+from gainfpn_cli.config import load_config
 from gainfpn_cli.errors import EstimationError
 from gainfpn_cli.motion import (
     estimate_motion,
@@ -9,6 +12,7 @@ from gainfpn_cli.motion import (
     positions_from_homography,
     trajectory_rms,
 )
+from gainfpn_cli.pipeline import LoadedBurst, estimate
 from gainfpn_cli.simulate import Shake, simulate_burst
 
 SHAPE = (200, 260)
@@ -32,34 +36,34 @@ def test_positions_follow_the_conventions():
 
 SHAKE4 = Shake(translation_px=2.5, rotation_deg=0.5)
 DRIFT = Shake(translation_px=1.0, rotation_deg=0.2, drift_px=25)
-KNOWN_MISS = pytest.mark.xfail(
-    strict=True,
-    reason="issue 4 open: on the smooth procedural scene tracking misses 0.05 px on this held-out burst "
-    "(measured worst frame 0.083 px for shake4px seed 5, 0.061 px for drift25px seed 6). The gain FPN "
-    "is the cause: with the frames divided by the true gain the worst of 24 such bursts is 0.025 px",
-)
+
+
+def _reported_worst(burst, report):
+    """Worst frame's trajectory error of the homographies report.json gives (frame pixels)."""
+    Hs = [np.array(f["homography"]) for f in report["motion"]["frames"]]
+    return max(trajectory_rms(H, burst.homographies[t], SHAPE) for t, H in enumerate(Hs, start=1))
 
 
 # Seeds 5 and 6 were not used to choose TRACK_SIGMA, TRACK_QUALITY or INLIER_PX.
-@pytest.mark.parametrize(
-    "seed, shake",
-    [
-        (5, Shake()),
-        (6, Shake()),
-        pytest.param(5, SHAKE4, marks=KNOWN_MISS),
-        (6, SHAKE4),
-        (5, DRIFT),
-        pytest.param(6, DRIFT, marks=KNOWN_MISS),
-    ],
-    ids=["shake-5", "shake-6", "shake4px-5", "shake4px-6", "drift25px-5", "drift25px-6"],
-)
+@pytest.mark.parametrize("seed, shake", [(5, Shake()), (6, Shake()), (5, SHAKE4), (6, SHAKE4), (5, DRIFT), (6, DRIFT)],
+                         ids=["shake-5", "shake-6", "shake4px-5", "shake4px-6", "drift25px-5", "drift25px-6"])
 def test_global_warp_is_sub_pixel_accurate_despite_fpn(seed, shake):
     # issue 4: RMS trajectory error <= 0.05 px with 5 % gain FPN, asserted on
-    # the worst frame of the burst
+    # the worst frame of the burst. On this smooth scene the gain pattern
+    # pulls the first estimate toward zero motion (shake4px-5: 0.083 px,
+    # drift25px-6: 0.061 px); a refinement round tracks again on the frames
+    # corrected by k. Measured over seeds 3-10 x these shakes (24 bursts):
+    # first estimate worst 0.083 px (6 over 0.05), refined 0.048 px (none).
     burst = simulate_burst(shape=SHAPE, n_frames=6, seed=seed, shake=shake)
-    result = estimate_motion(burst.frames.astype(np.float32))
-    assert _worst(burst, result) <= 0.05
-    np.testing.assert_array_equal(result.homographies[0], np.eye(3))
+    frames = burst.frames.astype(np.float32) - burst.sensor.black_level
+    loaded = LoadedBurst([Path(f"f{i}.exr") for i in range(len(frames))], frames[..., None].copy(), None, ("Y",),
+                         None, 0)
+    result = estimate(loaded, load_config(overrides={"solver.workers": 1, "motion.refine_rounds": 1}))
+    refined = _reported_worst(burst, result.report)
+    assert refined <= 0.05
+    assert "refined on frames corrected by k (round 1)" in result.report["motion"]["reason"]
+    if (seed, shake) in ((5, SHAKE4), (6, DRIFT)):  # where the first estimate misses, the round is what meets it
+        assert _worst(burst, estimate_motion(frames)) > 0.05 > refined
 
 
 @pytest.mark.parametrize("shake", [Shake(), SHAKE4, DRIFT], ids=["shake", "shake4px", "drift25px"])
