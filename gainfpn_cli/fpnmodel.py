@@ -69,29 +69,58 @@ class FPNModel:
     split: dict = field(default_factory=dict)
 
 
+@dataclass(frozen=True)
+class _Sums:
+    """Weighted sums over each column's even and odd rows, ``(2, W)`` float64 each: ``w``,
+    ``w (k - 1)`` and ``w (k - 1)^2``. Every structured model is a gain per (row parity, column),
+    so its fit and its chi-square follow from these alone (one pass over the map, not one per model)."""
+
+    w: np.ndarray
+    wd: np.ndarray
+    wdd: np.ndarray
+
+    @classmethod
+    def of(cls, k: np.ndarray, weight: np.ndarray) -> "_Sums":
+        d = k - np.float32(1)  # about k's deviations: no cancellation in the chi-squares
+        wd = weight * d
+        sums = [np.stack([a[p::2].sum(axis=0, dtype=np.float64) for p in (0, 1)]) for a in (weight, wd, wd * d)]
+        return cls(*sums)
+
+    def chi2(self, fit: np.ndarray) -> float:
+        """``sum w (k - fit)^2`` for a model given per (row parity, column), ``(2, W)`` or broadcastable."""
+        f = np.broadcast_to(np.asarray(fit, np.float64) - 1.0, self.w.shape)
+        return float(np.sum(self.wdd - 2.0 * f * self.wd + f * f * self.w))
+
+
 def structured_parts(k: np.ndarray, weight: np.ndarray, *, rounds: int = 3) -> tuple[np.ndarray, np.ndarray]:
     """Column gains ``c`` (W,) and even/odd row gains ``r`` (2,) with ``k ~ c[x] r[y % 2]``.
 
-    Weighted means (weights ``weight``, zero for unestimated pixels),
+    Weighted least squares (weights ``weight``, zero for unestimated pixels),
     alternated ``rounds`` times; both normalised to mean 1 where weighted.
     """
-    h, w = k.shape
-    parity = np.arange(h) % 2
-    col = np.ones(w)
-    row = np.ones(2)
+    return _structured(_Sums.of(np.asarray(k), np.asarray(weight)), rounds)
+
+
+def _structured(sums: _Sums, rounds: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """Alternating weighted least squares of ``k ~ c[x] r[p]``, each normalised to weighted mean 1."""
+    wk = sums.wd + sums.w  # sum of w k per (parity, column)
+    per_column, per_parity = sums.w.sum(axis=0), sums.w.sum(axis=1)
+    col, row = np.ones(sums.w.shape[1]), np.ones(2)
     for _ in range(rounds):
-        per_row = row.astype(k.dtype)[parity][:, None]
-        wsum = weight.sum(axis=0, dtype=np.float64)
-        col = np.divide((weight * k / per_row).sum(axis=0, dtype=np.float64), wsum, out=np.ones(w), where=wsum > 0)
-        col /= np.average(col, weights=np.maximum(wsum, 1e-300)) if wsum.sum() > 0 else 1.0
-        for p in (0, 1):
-            sel = parity == p
-            wp = weight[sel]
-            total = wp.sum(dtype=np.float64)
-            row[p] = (wp * k[sel] / col.astype(k.dtype)[None, :]).sum(dtype=np.float64) / total if total > 0 else 1.0
-        counts = np.array([weight[parity == p].sum(dtype=np.float64) for p in (0, 1)])
-        row /= np.average(row, weights=counts) if counts.sum() > 0 else 1.0
+        den = (row[:, None] ** 2 * sums.w).sum(axis=0)
+        col = np.divide((row[:, None] * wk).sum(axis=0), den, out=np.ones_like(col), where=den > 0)
+        col /= np.average(col, weights=np.maximum(per_column, 1e-300)) if per_column.sum() > 0 else 1.0
+        den = (col[None, :] ** 2 * sums.w).sum(axis=1)
+        row = np.divide((col[None, :] * wk).sum(axis=1), den, out=np.ones(2), where=den > 0)
+        row /= np.average(row, weights=per_parity) if per_parity.sum() > 0 else 1.0
     return col, row
+
+
+def _level(shape: np.ndarray, sums: _Sums) -> np.ndarray:
+    """``shape`` (per parity and column) times the scale that fits k best: the other models' fits
+    are weighted means, at k's own level, and AIC must compare them on equal terms."""
+    den = float(np.sum(shape**2 * sums.w))
+    return shape * (float(np.sum(shape * (sums.wd + sums.w))) / den if den > 0 else 1.0)
 
 
 def select_model(k: np.ndarray, confidence: np.ndarray, *, force: str | None = None) -> FPNModel:
@@ -113,35 +142,43 @@ def select_model(k: np.ndarray, confidence: np.ndarray, *, force: str | None = N
     est = confidence > 0
     sigma = np.maximum(sigma_from_confidence(confidence), 1e-6).astype(np.float32)
     weight = np.where(est, np.float32(1) / sigma**2, np.float32(0))
-    col, row = structured_parts(k, weight)
-    parity = np.arange(k.shape[0]) % 2
+    sums = _Sums.of(k, weight)
+    col, row = _structured(sums)
     w = k.shape[1]
-    fits = {
-        # parameters beyond the overall scale, which the gauge fixes for every model
-        "none": (np.broadcast_to(np.float32(_weighted_mean(k, weight)), k.shape), 0.0),
-        "row": (np.broadcast_to(_rows_only(k, weight)[parity][:, None], k.shape), 1.0),
-        "column": (np.broadcast_to(_columns_only(k, weight)[None, :], k.shape), w - 1.0),
-        "column+row": (col.astype(np.float32)[None, :] * row.astype(np.float32)[parity][:, None], float(w)),
+    wk = sums.wd + sums.w
+    ratio = lambda num, den: np.divide(num, den, out=np.ones_like(num), where=den > 0)  # noqa: E731 (1 where unseen)
+    fits = {  # each a gain per (row parity, column); parameters beyond the overall scale the gauge fixes
+        "none": (np.full((1, 1), ratio(wk.sum(keepdims=True), sums.w.sum(keepdims=True))[0, 0]), 0.0),
+        "row": (ratio(wk.sum(axis=1), sums.w.sum(axis=1))[:, None], 1.0),
+        "column": (ratio(wk.sum(axis=0), sums.w.sum(axis=0))[None, :], w - 1.0),
+        "column+row": (_level(row[:, None] * col[None, :], sums), float(w)),
     }
-    scores = {name: _chi2(k, fit, weight) + 2.0 * params for name, (fit, params) in fits.items()}
+    scores = {name: sums.chi2(fit) + 2.0 * params for name, (fit, params) in fits.items()}
     # is there pixel FPN at all: every pixel's own k against the best structured model
     scores["pixel"] = 2.0 * max(int(est.sum()) - 1, 0)
-    base, _ = fits[min(fits, key=lambda m: scores[m])]
+    parity = np.arange(k.shape[0]) % 2
+
+    def full(fit: np.ndarray) -> np.ndarray:
+        return np.broadcast_to(fit.astype(np.float32), (2, w))[parity]
+
+    base = full(fits[min(fits, key=lambda m: scores[m])][0])
+    chosen = force or min(MODELS, key=lambda m: scores[m])
     deviation = np.where(est, k - base, np.float32(0))
     prior = pixel_prior_variance(deviation[est], sigma[est])
-    shrink = np.float32(prior) / (np.float32(prior) + sigma**2)
-    fits["pixel"] = (np.where(est, base + shrink * deviation, np.float32(1)), 0.0)
-    del deviation, shrink
-    chosen = force or min(MODELS, key=lambda m: scores[m])
-    # a structured model knows every pixel of a column / row parity it has seen
-    model_k = np.array(fits[chosen][0], dtype=np.float32)
+    if chosen == "pixel":
+        shrink = np.float32(prior) / (np.float32(prior) + sigma**2)
+        model_k = np.where(est, base + shrink * deviation, np.float32(1))
+        del shrink
+    else:  # a structured model knows every pixel of a column / row parity it has seen
+        model_k = full(fits[chosen][0])
+    del deviation
     if est.any():
         model_k /= model_k[est].mean(dtype=np.float64)
     if chosen == "pixel":
         model_k[~est] = 1.0
     split = {
         "pixel": 100.0 * float(np.sqrt(prior)),
-        "column": 100.0 * robust_spread(1.0 / col[weight.sum(axis=0) > 0]) if est.any() else 0.0,
+        "column": 100.0 * robust_spread(1.0 / col[sums.w.sum(axis=0) > 0]) if est.any() else 0.0,
         "row": 100.0 * abs(row[0] - row[1]) / 2.0,
     }
     return FPNModel(model_k.astype(np.float32), chosen, scores, split)
@@ -164,29 +201,3 @@ def pixel_prior_variance(deviation: np.ndarray, sigma: np.ndarray) -> float:
     if d2.size == 0 or excess(0.0) <= 0:
         return 0.0
     return float(brentq(excess, 0.0, float(d2.mean(dtype=np.float64)), xtol=1e-12))
-
-
-def _chi2(k: np.ndarray, fit: np.ndarray, weight: np.ndarray) -> float:
-    """``sum weight (k - fit)^2``; ``weight`` is 0 where k was not estimated (k and fit finite there)."""
-    return float(np.sum(weight * np.square(k - fit), dtype=np.float64))
-
-
-def _weighted_mean(k: np.ndarray, weight: np.ndarray) -> float:
-    total = weight.sum(dtype=np.float64)
-    return float((weight * k).sum(dtype=np.float64) / total) if total > 0 else 1.0
-
-
-def _rows_only(k: np.ndarray, weight: np.ndarray) -> np.ndarray:
-    parity = np.arange(k.shape[0]) % 2
-    out = np.ones(2)
-    for p in (0, 1):
-        total = weight[parity == p].sum(dtype=np.float64)
-        out[p] = (weight[parity == p] * k[parity == p]).sum(dtype=np.float64) / total if total > 0 else 1.0
-    return out
-
-
-def _columns_only(k: np.ndarray, weight: np.ndarray) -> np.ndarray:
-    wsum = weight.sum(axis=0, dtype=np.float64)
-    return np.divide((weight * k).sum(axis=0, dtype=np.float64), wsum, out=np.ones(k.shape[1]), where=wsum > 0)
-
-

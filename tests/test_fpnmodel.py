@@ -40,8 +40,25 @@ def test_structured_parts_are_exact_without_noise():
     ],
 )
 def test_aic_picks_the_model_that_made_the_data(fpn, expected):
+    # a model with one parameter more than the truth wins by chance with
+    # P(chi2_1 > 2) = 16 %: column data may come out column+row (the row
+    # part then within the noise; counted in the next test)
     k, confidence, _ = _k_map(np.random.default_rng(1), **fpn)
-    assert select_model(k, confidence).chosen == expected
+    chosen = select_model(k, confidence).chosen
+    assert chosen == expected or (expected, chosen) == ("column", "column+row")
+
+
+def test_aic_chooses_the_truth_as_often_as_it_should():
+    # 40 maps each: column+row data must always be column+row (its fit was not
+    # at k's level and lost to the pixel model 7 times in 40); column data is
+    # column but for AIC's 16 % chance of the one-parameter-larger model
+    # (measured 33 of 40)
+    def chosen(seed, **fpn):
+        return select_model(*_k_map(np.random.default_rng(seed), **fpn)[:2]).chosen
+
+    assert all(chosen(seed, column=0.03, row=0.02) == "column+row" for seed in range(40))
+    picks = [chosen(seed, column=0.03) for seed in range(40)]
+    assert set(picks) <= {"column", "column+row"} and picks.count("column") >= 28
 
 
 def test_no_fpn_gets_no_visible_pattern():
