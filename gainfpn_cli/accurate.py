@@ -300,10 +300,15 @@ def _gmres_round(frames, pair_maps, opt, weights, denom, est, x0) -> tuple[np.nd
 
     shape = frames.shape[1:]
 
+    anchors = [wt * frames[s] for (s, _, _), wt in zip(pair_maps, weights)]
+    frames32 = {t: frames[t].astype(np.float32) for _, t, _ in pair_maps}
+
     def apply_m(k: np.ndarray) -> np.ndarray:
+        k32 = k.astype(np.float32)
+        corrected = {t: k32 * f for t, f in frames32.items()}  # each frame once, not once per pair
         num = np.zeros(shape)
-        for (s, t, M), wt in zip(pair_maps, weights):
-            num += wt * frames[s] * sample(k * frames[t], M, shape, kernel=opt.kernel)
+        for (_, t, M), anchor in zip(pair_maps, anchors):
+            num += anchor * sample(corrected[t], M, shape, kernel=opt.kernel)
         return np.divide(num, denom, out=np.zeros(shape), where=est)
 
     def operator(xv: np.ndarray) -> np.ndarray:
