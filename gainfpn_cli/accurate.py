@@ -113,6 +113,7 @@ class _Tile:
     y0: int
     x0: int
     frames: np.ndarray  # (F, h, w) crop of every frame over the tile and its halo
+    excluded: np.ndarray | None  # (F, h, w) bool crop: pixels left out (moving), or None
     pairs: tuple  # ((s, t), ...) compared
     motion: GlobalWarp | FieldWarp  # maps computed in the worker: a field model's cost a moment each
     saturation: float
@@ -125,6 +126,7 @@ def solve_accurate(
     *,
     options: AccurateOptions = AccurateOptions(),
     saturation: float | None = None,
+    excluded: np.ndarray | None = None,
     workers: int = 2,
     progress=None,
 ) -> GainResult:
@@ -138,10 +140,14 @@ def solve_accurate(
         The motion, or ``H_t_ref`` of each frame (the reference's is the identity).
     saturation : float, optional
         Samples at or above this level are excluded.
+    excluded : ndarray of bool, shape (F, H, W), optional
+        Samples left out besides (a moving object's: they follow no motion).
     """
     frames = np.asarray(frames, dtype=np.float32)
     if frames.ndim != 3 or frames.shape[0] < 2:
         raise ValueError(f"frames must have shape (F, H, W) with F >= 2, got {frames.shape}")
+    if excluded is not None and np.shape(excluded) != frames.shape:
+        raise ValueError(f"excluded must have the frames' shape {frames.shape}, got {np.shape(excluded)}")
     motion = as_warp(motion)
     if motion.n_frames != frames.shape[0]:
         raise ValueError(f"motion is given for {motion.n_frames} frames, there are {frames.shape[0]}")
@@ -158,7 +164,7 @@ def solve_accurate(
             f"{2 * radius} px on each side (use solver.interpolation: bilinear, or solver.method: paper)"
         )
     sat = np.inf if saturation is None else float(saturation)
-    tiles = _tiles(frames, motion, sat, options)
+    tiles = _tiles(frames, excluded, motion, sat, options)
     results = map_ordered(_solve_tile, tiles, workers=workers, progress=progress)
     # float32 frame-sized arrays (a 12 MP frame: 48 MB each); tiles' results are freed as they are blended
     k_sum = np.zeros((h, w), np.float32)
@@ -211,7 +217,7 @@ def _check_motion(homographies: np.ndarray, shape: tuple[int, int]) -> None:
         )
 
 
-def _tiles(frames, motion, saturation, options) -> list[_Tile]:
+def _tiles(frames, excluded, motion, saturation, options) -> list[_Tile]:
     n, h, w = frames.shape
     core, halo = options.tile, options.halo
     anchors = range(n) if options.anchors == "all" else [0]
@@ -221,7 +227,9 @@ def _tiles(frames, motion, saturation, options) -> list[_Tile]:
         for cx in range(0, w, core):
             y0, x0 = max(0, cy - halo), max(0, cx - halo)
             y1, x1 = min(h, cy + core + halo), min(w, cx + core + halo)
-            tiles.append(_Tile(y0, x0, frames[:, y0:y1, x0:x1], pairs, motion, saturation, options))
+            crop = (slice(None), slice(y0, y1), slice(x0, x1))
+            tiles.append(_Tile(y0, x0, frames[crop], None if excluded is None else excluded[crop], pairs, motion,
+                               saturation, options))
     return tiles
 
 
@@ -251,10 +259,16 @@ def _solve_tile(tile: _Tile) -> tuple[np.ndarray, np.ndarray, int]:
     """k, confidence and GMRES iterations for one tile (its halo included)."""
     opt = tile.options
     frames = tile.frames.astype(np.float64)
+    # k does not depend on the frames' scale: a power of two (exact) brings them to about 1,
+    # far from float32's limits in the products with k
+    unit = power_of_two_scale(frames)
+    good = (frames > 0) & (frames < tile.saturation)
+    if tile.excluded is not None:
+        good &= ~tile.excluded
+    frames /= unit
     shape = frames.shape[1:]
     region = (tile.y0, tile.x0) + shape
     pair_maps = [(s, t, tile.motion.pair(s, t, region)) for s, t in tile.pairs]  # (s, t, M_st in tile pixels)
-    good = (frames > 0) & (frames < tile.saturation)
     valid = [valid_samples(good[t], M, shape, kernel=opt.kernel) & good[s] for s, t, M in pair_maps]
     weights = [v.astype(np.float64) for v in valid]
     x = np.zeros(shape)
@@ -276,6 +290,14 @@ def _solve_tile(tile: _Tile) -> tuple[np.ndarray, np.ndarray, int]:
     k[~est] = 1.0
     confidence = _confidence(residuals, weights, valid, _anchor_information(frames, tile.pairs, weights), est)
     return k.astype(np.float32), confidence.astype(np.float32), iterations
+
+
+def power_of_two_scale(frames: np.ndarray) -> float:
+    """The power of two nearest the median of the positive samples (1 if none): dividing by
+    it is exact, so no sample crosses the saturation level or black."""
+    positive = frames[frames > 0]
+    median = float(np.median(positive)) if positive.size else 1.0
+    return float(2.0 ** np.round(np.log2(median))) if np.isfinite(median) and median > 0 else 1.0
 
 
 def _anchor_information(frames, pairs, weights) -> np.ndarray:

@@ -128,7 +128,8 @@ def to_uint8(frame: np.ndarray, lo: float, hi: float) -> np.ndarray:
     import cv2
 
     frame = np.asarray(frame, np.float32)
-    alpha = 255.0 / max(float(hi) - float(lo), 1e-12)
+    span = float(hi) - float(lo)
+    alpha = 255.0 / span if span > 0 else 0.0  # relative: frames of any scale (1e-33 or 1e38) track alike
     return cv2.addWeighted(frame, alpha, frame, 0.0, -float(lo) * alpha, dtype=cv2.CV_8U)  # one pass
 
 

@@ -21,7 +21,7 @@ from typing import Callable
 import numpy as np
 
 from . import __version__
-from .accurate import AccurateOptions, sigma_from_confidence, solve_accurate
+from .accurate import AccurateOptions, power_of_two_scale, sigma_from_confidence, solve_accurate
 from .bayer import OFFSETS, green_lattice, grey_proxy, plane_to_mosaic
 from .blocks import GainResult, solve_paper
 from .config import Config, dump_config
@@ -179,12 +179,9 @@ def estimate(burst: LoadedBurst, cfg: Config, *, progress: Progress | None = Non
         warnings.append(f"the frames are dark: {100 * dark:.1f} % of the reference's pixels are at or below black; "
                         "near black the estimate is noise-limited and biased, and where most of the frame is this "
                         "dark it can be worse than no correction (expose longer or raise the sensor gain)")
-    # k does not depend on the frames' scale; about 1 at the reference's median
-    # keeps every product of the solve far from float32's limits
-    scale = _scale(burst.frames[burst.reference])
-    frames = burst.frames[order]  # a copy in reference-first order, scaled in place
-    frames /= np.float32(scale)
-    saturation = None if burst.saturation is None else burst.saturation / scale
+    # reference first: the frames as loaded when it is (no copy: the solver leaves out the pixels
+    # masked as moving itself, and scales its tiles where the float32 products need it)
+    frames = burst.frames if order == list(range(len(order))) else burst.frames[order]
     holdout = cfg.output.holdout
     if holdout and len(frames) <= MIN_FRAMES:
         raise EstimationError(f"only {len(frames)} frames: holding one out to check the estimate would leave "
@@ -203,31 +200,28 @@ def estimate(burst: LoadedBurst, cfg: Config, *, progress: Progress | None = Non
     update = progress("motion", len(frames) - 1) if progress else None
     motion = estimate_motion(motion_images, model=cfg.motion.model, progress=update)
     in_frame = motion.warp.conjugate(np.linalg.inv(S_motion))  # the motion in frame pixels
-    # without refinement rounds the unmasked frames are not needed again: mask in place
-    solve_frames, moving = _mask_moving(frames, motion_images, motion.warp, burst.cfa, cfg,
-                                        in_place=cfg.motion.refine_rounds == 0)
+    excluded, moving = _moving(frames, motion_images, motion.warp, burst.cfa, cfg)
     del motion_images
     timings["motion_s"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     n_fit = len(fit_frames)
     fit = in_frame.select(range(n_fit))
-    scaled = dataclasses.replace(burst, saturation=saturation)
-    solve_cfg = dataclasses.replace(cfg, solver=dataclasses.replace(cfg.solver, lam=cfg.solver.lam / scale**2))  # DN^2
-    k, confidence, plane_reports = _solve_planes(scaled, solve_frames[:n_fit], fit, solve_cfg, progress)
+    k, confidence, plane_reports = _solve_planes(burst, frames, excluded, n_fit, fit, cfg, progress)
     for round_ in range(1, cfg.motion.refine_rounds + 1):
-        corrected, _ = _motion_images(frames * k[None], burst.cfa)
+        corrected, _ = _motion_images(frames * (k / np.float32(power_of_two_scale(frames[0])))[None], burst.cfa)
         reason = f"{motion.reason}; refined on frames corrected by k (round {round_})"
         motion = dataclasses.replace(estimate_motion(corrected, model=motion.model), reason=reason)
         in_frame = motion.warp.conjugate(np.linalg.inv(S_motion))
-        solve_frames, moving = _mask_moving(frames, corrected, motion.warp, burst.cfa, cfg)
+        excluded, moving = _moving(frames, corrected, motion.warp, burst.cfa, cfg)
+        del corrected
         fit = in_frame.select(range(n_fit))
-        k, confidence, plane_reports = _solve_planes(scaled, solve_frames[:n_fit], fit, solve_cfg, progress)
+        k, confidence, plane_reports = _solve_planes(burst, frames, excluded, n_fit, fit, cfg, progress)
     timings["solve_s"] = time.perf_counter() - t0
 
     holdout_report = None
     if holdout:
-        ratio = _holdout_ratio(scaled, solve_frames, in_frame, k, cfg.solver.method)
+        ratio = _holdout_ratio(burst, frames, excluded, in_frame, k, cfg.solver.method)
         holdout_report = {"frame": burst.paths[order[-1]].name, "residual_ratio": ratio, "passed": ratio < 1.0}
         if ratio >= 1.0:
             warnings.append(f"the estimate does not reduce the brightness-constancy residual on the held-out frame "
@@ -270,44 +264,34 @@ def _frame_homography(H: np.ndarray, S: np.ndarray) -> list:
     return (H / H[2, 2]).tolist()
 
 
-def _scale(frame: np.ndarray) -> float:
-    """The power of two nearest the median of the frame's positive pixels (1 if none):
-    dividing by it is exact, so no pixel crosses the saturation level or black."""
-    positive = frame[frame > 0]
-    median = float(np.median(positive)) if positive.size else 1.0
-    return float(2.0 ** np.round(np.log2(median))) if np.isfinite(median) and median > 0 else 1.0
-
-
-def _mask_moving(frames, motion_images, warp, cfa, cfg, *, in_place: bool = False
-                 ) -> tuple[np.ndarray, list[float] | None]:
-    """Frames with the pixels that do not follow the estimated motion set to 0 (which
-    every solver leaves out, as it does dark pixels), and the percentage of each frame's
-    pixels left out. ``in_place`` zeroes them in ``frames`` itself instead of a copy.
-    The masks are brought to frame resolution one frame at a time (at 12 MP x 16 a
-    stack of them held 0.2-0.5 GB)."""
+def _moving(frames, motion_images, warp, cfa, cfg) -> tuple[np.ndarray | None, list[float] | None]:
+    """Pixels of each frame that do not follow the estimated motion, ``(F, H, W)`` bool, which
+    the solvers leave out; and the percentage of each frame's pixels. None without ``mask_moving``.
+    A CFA's masks (on 2x2 cells) are brought to photosites one frame at a time."""
     if not cfg.motion.mask_moving:
-        return frames, None
+        return None, None
     masks = moving_masks(motion_images, warp)
-    out = frames if in_place else frames.copy()
-    percent = []
-    for t, mask in enumerate(masks):
-        if cfa:  # grey-proxy pixel (y, x) is the CFA cell of photosites (2y.., 2x..)
+    if cfa:  # grey-proxy pixel (y, x) is the CFA cell of photosites (2y.., 2x..)
+        cells, masks = masks, np.empty(frames.shape[:3], bool)
+        for t, mask in enumerate(cells):
             mask = np.repeat(np.repeat(mask, 2, axis=0), 2, axis=1)
-            mask = np.pad(mask, [(0, frames.shape[1] - mask.shape[0]), (0, frames.shape[2] - mask.shape[1])],
-                          mode="edge")
-        out[t][mask] = 0.0
-        percent.append(round(100 * float(mask.mean()), 2))
-    return out, percent
+            masks[t] = np.pad(mask, [(0, frames.shape[1] - mask.shape[0]), (0, frames.shape[2] - mask.shape[1])],
+                              mode="edge")
+        del cells
+    return masks, [round(100 * float(m.mean()), 2) for m in masks]
 
 
-def _solve_planes(burst, frames, in_frame, cfg, progress):
+def _solve_planes(burst, frames, excluded, n_fit, in_frame, cfg, progress):
+    """k and confidence of every plane from the first ``n_fit`` frames, with the FPN model and the gauge."""
     s = cfg.solver
     k = np.ones(frames.shape[1:], np.float32)
     confidence = np.zeros(frames.shape[1:], np.float32)
+    fit = frames[:n_fit]
+    left_out = None if excluded is None else np.broadcast_to(excluded[:n_fit, ..., None], fit.shape)  # every channel
     solved = {}
     for grid in _grids(burst, frames.shape[1:3], s.method):
-        result, info = _solve_grid(grid.gather(frames), in_frame.conjugate(grid.S), burst.saturation, cfg, progress,
-                                   grid.name)
+        result, info = _solve_grid(grid.gather(fit), None if left_out is None else grid.gather(left_out),
+                                   in_frame.conjugate(grid.S), burst.saturation, cfg, progress, grid.name)
         grid.scatter(k, result.k)
         grid.scatter(confidence, result.confidence)
         solved.update({name: {**info, "solved_on": grid.name} for name in grid.positions})
@@ -326,10 +310,12 @@ def _solve_planes(burst, frames, in_frame, cfg, progress):
     return k, confidence, reports
 
 
-def _solve_grid(frames, motion, saturation, cfg, progress, name) -> tuple[GainResult, dict]:
+def _solve_grid(frames, excluded, motion, saturation, cfg, progress, name) -> tuple[GainResult, dict]:
     s = cfg.solver
     update = progress(f"solve {name}", 0) if progress else None
     if s.method == "paper":
+        if excluded is not None:  # the published form takes zeroed pixels as missing
+            frames = np.where(excluded, np.float32(0), frames)
         region = (0, 0) + frames.shape[1:]
         positions = np.stack([warp_positions(motion.pair(0, t, region), frames.shape[1:])
                               for t in range(1, len(frames))])
@@ -340,8 +326,8 @@ def _solve_grid(frames, motion, saturation, cfg, progress, name) -> tuple[GainRe
     options = AccurateOptions(kernel=s.interpolation, anchors=s.anchors, partners=s.partners, rtol=s.rtol,
                               gauge_sigma=s.gauge_sigma, tile=s.tile,
                               robust_rounds=s.robust_rounds, gain_range=s.gain_range)
-    result = solve_accurate(frames, motion, options=options, saturation=saturation, workers=s.workers,
-                            progress=update)
+    result = solve_accurate(frames, motion, options=options, saturation=saturation, excluded=excluded,
+                            workers=s.workers, progress=update)
     return result, {"method": "accurate", **result.stats}
 
 
@@ -365,15 +351,21 @@ def _physical(result: GainResult, gain_range: tuple[float, float], structured: b
     return GainResult(k.astype(np.float32), confidence.astype(np.float32), result.stats)
 
 
-def _holdout_ratio(burst, frames, in_frame, k, method: str) -> float:
+def _holdout_ratio(burst, frames, excluded, in_frame, k, method: str) -> float:
     """Brightness-constancy residual of the held-out frame against the reference, with k over without."""
     num = den = 0.0
     sat = np.inf if burst.saturation is None else burst.saturation
+    scale = np.float32(power_of_two_scale(frames[0]))  # about 1: k times a frame stays far from float32's limits
     for grid in _grids(burst, frames.shape[1:3], method):
         ref, held, kp = grid.gather(frames[0]), grid.gather(frames[-1]), grid.gather(k)
+        ref_ok, held_ok = (ref > 0) & (ref < sat), (held > 0) & (held < sat)
+        if excluded is not None:
+            ref_ok &= ~grid.gather(np.broadcast_to(excluded[0, ..., None], frames.shape[1:]))
+            held_ok &= ~grid.gather(np.broadcast_to(excluded[-1, ..., None], frames.shape[1:]))
+        ref, held = ref / scale, held / scale
         shape = ref.shape
         M = in_frame.conjugate(grid.S).pair(0, len(frames) - 1, (0, 0) + shape)
-        valid = valid_samples((held > 0) & (held < sat), M, shape) & (ref > 0) & (ref < sat)
+        valid = valid_samples(held_ok, M, shape) & ref_ok
         with_k = kp * ref - sample(kp * held, M, shape)
         without = ref - sample(held, M, shape)
         num += float(np.sum(with_k[valid] ** 2))
