@@ -476,6 +476,7 @@ def plot(summary: dict, out_dir: Path) -> list[Path]:
                             xytext=(4, 4), textcoords="offset points")
         ax.set(xscale="log", xlabel="wall time, end to end (s)", ylabel="residual gain FPN (%)",
                title="accuracy against time (stars: presets and the published form)")
+        _plain_log(ax.xaxis)
         for r in rows:  # reference lines, labelled at the left edge (x in axes fraction, y in data)
             if r["kind"] in ("floor", "flat-field"):
                 ax.axhline(r["residual_fpn_percent"], color="grey", ls="--", lw=0.8)
@@ -491,6 +492,8 @@ def plot(summary: dict, out_dir: Path) -> list[Path]:
             a2.plot([r["megapixels"] for r in sel], [r["peak_rss_mb"] / 1024 for r in sel], "o-", label=preset)
         a1.set(xscale="log", yscale="log", xlabel="megapixels (8 frames)", ylabel="time (s)")
         a2.set(xscale="log", xlabel="megapixels (8 frames)", ylabel="peak RSS (GiB)")
+        for axis in (a1.xaxis, a1.yaxis, a2.xaxis):
+            _plain_log(axis)
         a1.legend()
         written.append(_save(fig, out_dir / "scaling.png"))
     flow = [r for r in rows if r["kind"] == "flow-error"]
@@ -502,6 +505,15 @@ def plot(summary: dict, out_dir: Path) -> list[Path]:
                title="flow-error sensitivity (accurate solver, true motion + error)")
         written.append(_save(fig, out_dir / "flow_error.png"))
     return written
+
+
+def _plain_log(axis) -> None:
+    """A log axis labelled 1, 2, 5, 10, ... in plain numbers (the default crowds 3x10^0-style minor labels)."""
+    from matplotlib.ticker import FormatStrFormatter, LogLocator, NullFormatter
+
+    axis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
+    axis.set_major_formatter(FormatStrFormatter("%g"))
+    axis.set_minor_formatter(NullFormatter())
 
 
 def _save(fig, path: Path) -> Path:
