@@ -84,8 +84,8 @@ class AccurateOptions:
         pin k down (the iterations past ~50 fit noise into those modes).
         Bursts of 8 frames converge in 10-25 iterations and are unaffected;
         measured with 10 -> 1 (balanced, one run each): 5 frames of 2 MP,
-        3.3x in 45 s -> 4.9x in 15 s; a 4-frame burst, rejected by the
-        hold-out either way, 79 s -> 19 s (cap of 2); a 12-bit RGGB DNG burst
+        3.3x in 45 s -> 4.9x in 15 s; 4 frames of 2 MP, rejected by the
+        hold-out after 79 s -> 1.5x in 11 s (the bench); a 12-bit RGGB DNG burst
         of 6 MP x 8, whose red and blue planes took a median 140 and up to
         975 iterations, 1.36x in 128 s -> 1.38x in 55 s.
     tile : int
@@ -149,7 +149,7 @@ def solve_accurate(
     saturation : float, optional
         Samples at or above this level are excluded.
     excluded : ndarray of bool, shape (F, H, W), optional
-        Samples left out besides (a moving object's: they follow no motion).
+        Samples to leave out as well (a moving object's, which follow no motion).
     """
     frames = np.asarray(frames, dtype=np.float32)
     if frames.ndim != 3 or frames.shape[0] < 2:

@@ -451,9 +451,10 @@ def _assemble(fits: list[dict], chosen: str, shape) -> GlobalWarp | FieldWarp:
 #: absolute DN, bright flat areas were flagged for their FPN. The mask is
 #: then grown by MASK_GROW_PX. Measured on 200x260x6 bursts, seeds 3-8, both
 #: scenes, shake and 25 px drift, true motion (absolute at 4 sigmas ->
-#: relative at 3.5): textured object pixels found, worst frame, 94-97 %
-#: either way; without an object, flagged 0.2-1.6 % -> 0.1-1.1 % of the
-#: burst and at most 7.2 % -> 2.7 % of the reference.
+#: relative at 3.5): textured object pixels found in the worst frame of the
+#: drift bursts 94-97 % either way (in the shake bursts some seed's worst
+#: frame finds none either way); without an object, flagged 0.2-1.6 % ->
+#: 0.1-1.1 % of the burst and at most 7.2 % -> 2.7 % of the reference.
 MASK_FLOW_PX = 1.0
 MASK_SIGMAS = 3.5
 MASK_FLOOR = 0.25
