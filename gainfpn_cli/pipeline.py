@@ -443,13 +443,18 @@ def _write_corrected(burst: LoadedBurst, k: np.ndarray, folder: Path, cfg: Confi
             update(min(2, len(burst.paths) - i))
 
 
+#: On an error or an interrupt, how long (s) the other frame's write may take to finish (a 12 MP
+#: frame takes ~0.1 s) before the staging directory is removed under it.
+WRITE_GRACE_S = 5.0
+
+
 def _in_pair(fn: Callable[[int], None], i: int, both: bool) -> None:
     """``fn(i)`` here and, if ``both``, ``fn(i + 1)`` at the same time on a daemon thread.
 
     OpenImageIO releases the GIL while it encodes and writes, so two frames at
     a time take half the time (12 MP x 8 uncompressed: 0.94 -> 0.49 s). The
-    thread is a daemon: an interrupt here does not wait for it (the staging
-    directory it writes into is removed).
+    thread is a daemon: an interrupt here waits for it at most WRITE_GRACE_S
+    (then the staging directory it writes into is removed).
     """
     failed: list[BaseException] = []
 
@@ -462,7 +467,12 @@ def _in_pair(fn: Callable[[int], None], i: int, both: bool) -> None:
     thread = threading.Thread(target=other, daemon=True) if both else None
     if thread:
         thread.start()
-    fn(i)
+    try:
+        fn(i)
+    except BaseException:  # give the other write a moment to finish before its folder is removed
+        if thread:
+            thread.join(timeout=WRITE_GRACE_S)
+        raise
     if thread:
         thread.join()
     if failed:
