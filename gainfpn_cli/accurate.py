@@ -39,7 +39,7 @@ from .blocks import GainResult
 from .errors import EstimationError
 from .parallel import map_ordered
 from .trajectory import FieldWarp, GlobalWarp, as_warp
-from .warp import KERNELS, low_pass, sample, valid_samples
+from .warp import KERNELS, bounded, low_pass, sample, valid_samples
 
 #: Predicted standard error of k at which confidence is 0.5.
 CONFIDENCE_SCALE = 0.01
@@ -276,7 +276,8 @@ def _solve_tile(tile: _Tile) -> tuple[np.ndarray, np.ndarray, int]:
     frames /= unit
     shape = frames.shape[1:]
     region = (tile.y0, tile.x0) + shape
-    pair_maps = [(s, t, tile.motion.pair(s, t, region)) for s, t in tile.pairs]  # (s, t, M_st in tile pixels)
+    # (s, t, M_st in tile pixels); a map is used every iteration: bounded once
+    pair_maps = [(s, t, bounded(tile.motion.pair(s, t, region), shape)) for s, t in tile.pairs]
     valid = [valid_samples(good[t], M, shape, kernel=opt.kernel) & good[s] for s, t, M in pair_maps]
     weights = [v.astype(np.float64) for v in valid]
     x = np.zeros(shape)

@@ -193,3 +193,26 @@ def test_a_layered_warp_pair_conjugate_and_select_agree_with_its_points():
     np.testing.assert_allclose(warp.conjugate(S).map_points(0, 1, c),
                                (warp.map_points(0, 1, c * 2 + 0.5) - 0.5) / 2)
     assert warp.select([0]).n_frames == 1 and warp.select([1, 0]).labels[0][0, 5] != 0
+
+
+def test_bounded_maps_sample_alike_where_the_samples_are_valid():
+    # NOWHERE positions are brought to just outside the source (OpenCV's
+    # reflecting border walked to -1e5 one reflection at a time: a layered
+    # solve of 120x160x6 took 4.5 s, now 0.4 s, with the same k)
+    from gainfpn_cli.trajectory import NOWHERE
+    from gainfpn_cli.warp import bounded, sample, valid_samples
+
+    rng = np.random.default_rng(0)
+    image = rng.uniform(1, 2, (30, 40)).astype(np.float32)
+    ys, xs = np.mgrid[0:30, 0:40].astype(np.float32)
+    M = np.stack([xs + 0.3, ys - 0.6], axis=-1)
+    M[rng.uniform(size=(30, 40)) < 0.2] = NOWHERE
+    M[0, 0] = [55.0, 12.0]  # past the right edge, legitimately
+    B = bounded(M, image.shape)
+    assert B.min() >= -8 and B[..., 0].max() <= 39 + 8 and B[..., 1].max() <= 29 + 8
+    valid = valid_samples(np.ones(image.shape, bool), M, image.shape, kernel="lanczos4")
+    np.testing.assert_array_equal(valid, valid_samples(np.ones(image.shape, bool), B, image.shape, kernel="lanczos4"))
+    np.testing.assert_array_equal(sample(image, B, image.shape)[valid], sample(image, M, image.shape)[valid])
+    assert valid.any() and not valid[0, 0]
+    H = np.eye(3)
+    assert bounded(H, image.shape) is H
