@@ -86,6 +86,11 @@ class _Sums:
         sums = [np.stack([a[p::2].sum(axis=0, dtype=np.float64) for p in (0, 1)]) for a in (weight, wd, wd * d)]
         return cls(*sums)
 
+    @property
+    def wk(self) -> np.ndarray:
+        """``w k`` summed per (row parity, column)."""
+        return self.wd + self.w
+
     def chi2(self, fit: np.ndarray) -> float:
         """``sum w (k - fit)^2`` for a model given per (row parity, column), ``(2, W)`` or broadcastable."""
         f = np.broadcast_to(np.asarray(fit, np.float64) - 1.0, self.w.shape)
@@ -103,7 +108,7 @@ def structured_parts(k: np.ndarray, weight: np.ndarray, *, rounds: int = 3) -> t
 
 def _structured(sums: _Sums, rounds: int = 3) -> tuple[np.ndarray, np.ndarray]:
     """Alternating weighted least squares of ``k ~ c[x] r[p]``, each normalised to weighted mean 1."""
-    wk = sums.wd + sums.w  # sum of w k per (parity, column)
+    wk = sums.wk
     per_column, per_parity = sums.w.sum(axis=0), sums.w.sum(axis=1)
     col, row = np.ones(sums.w.shape[1]), np.ones(2)
     for _ in range(rounds):
@@ -120,7 +125,7 @@ def _level(shape: np.ndarray, sums: _Sums) -> np.ndarray:
     """``shape`` (per parity and column) times the scale that fits k best: the other models' fits
     are weighted means, at k's own level, and AIC must compare them on equal terms."""
     den = float(np.sum(shape**2 * sums.w))
-    return shape * (float(np.sum(shape * (sums.wd + sums.w))) / den if den > 0 else 1.0)
+    return shape * (float(np.sum(shape * sums.wk)) / den if den > 0 else 1.0)
 
 
 def select_model(k: np.ndarray, confidence: np.ndarray, *, force: str | None = None) -> FPNModel:
@@ -145,7 +150,7 @@ def select_model(k: np.ndarray, confidence: np.ndarray, *, force: str | None = N
     sums = _Sums.of(k, weight)
     col, row = _structured(sums)
     w = k.shape[1]
-    wk = sums.wd + sums.w
+    wk = sums.wk
     ratio = lambda num, den: np.divide(num, den, out=np.ones_like(num), where=den > 0)  # noqa: E731 (1 where unseen)
     fits = {  # each a gain per (row parity, column); parameters beyond the overall scale the gauge fixes
         "none": (np.full((1, 1), ratio(wk.sum(keepdims=True), sums.w.sum(keepdims=True))[0, 0]), 0.0),
