@@ -140,8 +140,12 @@ def tracking_image(frame: np.ndarray, lo: float, hi: float) -> np.ndarray:
     return to_uint8(cv2.GaussianBlur(np.asarray(frame, np.float32), (0, 0), TRACK_SIGMA), lo, hi)
 
 
-def find_corners(reference: np.ndarray, *, max_points: int = 4000, quality: float = TRACK_QUALITY) -> np.ndarray:
+def find_corners(reference: np.ndarray, *, max_points: int = 4000, quality: float = TRACK_QUALITY,
+                 ignore: np.ndarray | None = None) -> np.ndarray:
     """Shi-Tomasi corners of the uint8 reference, cell by cell: ``(n, 1, 2)`` float32 ``(x, y)``.
+
+    None is taken where the bool ``ignore`` is set (a moving object's pixels:
+    its strong corners would otherwise crowd out the background's).
 
     Each cell is searched in its own crop (not through a mask of the whole
     frame, which costs a corner-strength map of the whole frame per cell).
@@ -159,6 +163,8 @@ def find_corners(reference: np.ndarray, *, max_points: int = 4000, quality: floa
             crop = reference[cy : min(h, y1 + pad), cx : min(w, x1 + pad)]
             mask = np.zeros(crop.shape, np.uint8)
             mask[y0 - cy : y1 - cy, x0 - cx : x1 - cx] = 1
+            if ignore is not None:
+                mask[ignore[cy : cy + crop.shape[0], cx : cx + crop.shape[1]]] = 0
             found = cv2.goodFeaturesToTrack(crop, maxCorners=max(1, max_points // GRID**2), qualityLevel=quality,
                                             minDistance=spacing, blockSize=7, mask=mask)
             if found is not None:
@@ -299,6 +305,7 @@ def estimate_motion(
     frames: np.ndarray,
     *,
     model: str = "auto",
+    ignore: np.ndarray | None = None,
     progress=None,
 ) -> MotionResult:
     """The motion of every frame of a burst whose first frame is the reference.
@@ -320,7 +327,7 @@ def estimate_motion(
     if hi - lo <= 0:
         raise EstimationError("the reference frame is uniform: no texture to track")
     ref8 = tracking_image(frames[0], lo, hi)
-    corners = find_corners(ref8)  # once per burst
+    corners = find_corners(ref8, ignore=ignore)  # once per burst
     src_all = corners.reshape(-1, 2).astype(np.float64)
     candidates = ALL_MODELS if model == "auto" else [model]
     per_frame_models = [m for m in candidates if m in MODELS] or ["homography"]  # layers start from a homography

@@ -210,8 +210,12 @@ def estimate(burst: LoadedBurst, cfg: Config, *, progress: Progress | None = Non
     k, confidence, plane_reports = _solve_planes(burst, frames, excluded, n_fit, fit, cfg, progress)
     for round_ in range(1, cfg.motion.refine_rounds + 1):
         corrected, _ = _motion_images(frames * (k / np.float32(power_of_two_scale(frames[0])))[None], burst.cfa)
+        # the model is chosen again: on frames without their gain pattern the choice can change (a forced
+        # "layers" would also lose the base model auto chose for it)
+        ignore = _reference_moving(excluded, corrected.shape[1:], burst.cfa)  # no corner on what the round masked
+        motion = estimate_motion(corrected, model=cfg.motion.model, ignore=ignore)
         reason = f"{motion.reason}; refined on frames corrected by k (round {round_})"
-        motion = dataclasses.replace(estimate_motion(corrected, model=motion.model), reason=reason)
+        motion = dataclasses.replace(motion, reason=reason)
         in_frame = motion.warp.conjugate(np.linalg.inv(S_motion))
         excluded, moving = _moving(frames, corrected, motion.warp, burst.cfa, cfg)
         del corrected
@@ -262,6 +266,13 @@ def _frame_homography(H: np.ndarray, S: np.ndarray) -> list:
     """``H_t_ref`` of the motion images in frame pixels (mosaic photosites for RAW), as nested lists."""
     H = np.asarray(S) @ H @ np.linalg.inv(S)
     return (H / H[2, 2]).tolist()
+
+
+def _reference_moving(excluded: np.ndarray | None, shape: tuple[int, int], cfa: str | None) -> np.ndarray | None:
+    """The reference's pixels masked as moving, on the motion images' ``shape`` grid (a CFA's 2x2 cells)."""
+    if excluded is None:
+        return None
+    return excluded[0, ::2, ::2][: shape[0], : shape[1]] if cfa else excluded[0]
 
 
 def _moving(frames, motion_images, warp, cfa, cfg) -> tuple[np.ndarray | None, list[float] | None]:

@@ -87,6 +87,41 @@ def test_a_moving_object_does_not_move_the_global_warp(seed, shake, limit):
     assert _worst(burst, result) <= limit
 
 
+def test_no_corner_is_taken_where_told_to_ignore():
+    from gainfpn_cli.motion import find_corners, tracking_image
+
+    burst = simulate_burst(shape=SHAPE, n_frames=1, seed=3, scene="dead-leaves")
+    frame = burst.frames[0].astype(np.float32)
+    ref8 = tracking_image(frame, *np.percentile(frame, [0.5, 99.5]))
+    ignore = np.zeros(SHAPE, bool)
+    ignore[40:140, 60:200] = True
+    everywhere = find_corners(ref8).reshape(-1, 2)
+    kept = find_corners(ref8, ignore=ignore).reshape(-1, 2)
+    inside = lambda p: ignore[np.round(p[:, 1]).astype(int), np.round(p[:, 0]).astype(int)]  # noqa: E731
+    assert inside(everywhere).sum() > 50 and not inside(kept).any()
+    assert len(kept) > 0.5 * (~inside(everywhere)).sum()  # the rest of the frame still gets its corners
+
+
+@pytest.mark.parametrize("seed, shake", [
+    (6, DRIFT), (10, DRIFT),
+    pytest.param(7, DRIFT, marks=pytest.mark.xfail(strict=True, reason="issue 4, open: refined worst frame 0.055 px")),
+], ids=["drift25px-6", "drift25px-10", "drift25px-7"])
+def test_a_refinement_round_keeps_the_background_warp_despite_an_object(seed, shake):
+    # issue 4: the object's pixels are excluded and the rest keeps <= 0.05 px.
+    # The first estimate misses here (0.104 and 0.065 px: the gain pattern's
+    # pull); a refinement round chooses the model again on the frames
+    # corrected by k and tracks no corner the first round masked as moving.
+    # Seeds 3-10 x shake / 4 px shake / 25 px drift (24 bursts): first
+    # estimate worst 0.104 px (8 over 0.05), refined 0.055 px (2 over: this
+    # drift-7 and 4 px shake seed 5, 0.051 px).
+    burst = simulate_burst(shape=SHAPE, n_frames=6, seed=seed, shake=shake, moving_object=0.1)
+    frames = burst.frames.astype(np.float32) - burst.sensor.black_level
+    loaded = LoadedBurst([Path(f"f{i}.exr") for i in range(len(frames))], frames[..., None].copy(), None, ("Y",),
+                         None, 0)
+    result = estimate(loaded, load_config(overrides={"solver.workers": 1, "motion.refine_rounds": 1}))
+    assert _reported_worst(burst, result.report) <= 0.05
+
+
 @pytest.mark.parametrize(
     "shake, expected",
     [
