@@ -374,8 +374,10 @@ def check_out_dir(out_dir: Path, overwrite: bool) -> None:
         raise InputError(f"{out_dir}: exists and is not a directory")
     if out_dir.is_dir() and any(out_dir.iterdir()) and not overwrite:
         raise InputError(f"{out_dir}: directory is not empty (pass --overwrite to replace its results)")
-    if not out_dir.absolute().parent.exists():
-        raise InputError(f"{out_dir.parent}: no such directory")
+    parent = out_dir.absolute().parent  # created when the results are written, as mkdir -p would
+    existing = next(p for p in (parent, *parent.parents) if p.exists())
+    if not existing.is_dir():
+        raise InputError(f"{existing}: is not a directory, so {out_dir} cannot be made")
 
 
 @contextlib.contextmanager
@@ -390,6 +392,7 @@ def staged_directory(out_dir: str | os.PathLike) -> Iterator[Path]:
     tmp = _staging(out_dir, str(os.getpid()))
     shutil.rmtree(tmp, ignore_errors=True)
     try:
+        tmp.parent.mkdir(parents=True, exist_ok=True)
         tmp.mkdir()
     except OSError as exc:
         raise InputError(f"{out_dir}: cannot write here ({exc.strerror or exc})") from None

@@ -62,6 +62,20 @@ def test_simulate_refuses_to_mix_results(runner, tmp_path):
     assert sorted(p.name for p in out.glob("frame_*")) == ["frame_000.exr", "frame_001.exr"]
 
 
+def test_outputs_go_into_new_folders_as_mkdir_p_would(runner, tmp_path):
+    # the README's `gainfpn simulate out/burst && gainfpn estimate out/burst -o out/est` on a fresh clone
+    sim, est = tmp_path / "out" / "burst", tmp_path / "runs" / "a" / "est"
+    assert runner.invoke(main, ["simulate", str(sim), "--size", "96x72", "--frames", "5"]).exit_code == 0
+    result = runner.invoke(main, ["estimate", str(sim), "-o", str(est), "--quiet", "--workers", "1"])
+    assert result.exit_code == 0, result.output
+    assert (est / "gain_map.exr").is_file()
+    assert sorted(p.name for p in (tmp_path / "runs" / "a").iterdir()) == ["est"]  # no staging left beside it
+    (tmp_path / "file").write_text("x")
+    refused = runner.invoke(main, ["simulate", str(tmp_path / "file" / "burst"), "--size", "32x32", "--frames", "2"])
+    assert refused.exit_code == 1
+    assert refused.output.strip() == f"Error: {tmp_path / 'file'}: is not a directory, so {tmp_path / 'file' / 'burst'} cannot be made"
+
+
 def test_simulate_is_deterministic(runner, tmp_path):
     for name in ("a", "b"):
         assert runner.invoke(main, ["simulate", str(tmp_path / name), "--size", "32x32", "--frames", "2",
