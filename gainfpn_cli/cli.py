@@ -324,6 +324,9 @@ def evaluate(out_dir, sim_dir):
     click.echo(f"{'MSE frame 0 (DN^2)':24}{scores['mse_before']:>10.2f}{scores['mse_after']:>10.2f}")
     click.echo(f"MSE reduction {ratio:.1f}x (temporal-noise floor {scores['mse_floor']:.2f} DN^2), "
                f"{100 * scores['estimated_fraction']:.0f}% of pixels estimated")
+    if scores.get("residual_bound_percent") is not None:
+        click.echo(f"no estimate from {scores['bound_frames']} frames of this sensor can leave less than "
+                   f"{scores['residual_bound_percent']:.2f} % gain FPN on average (Cramer-Rao bound)")
 
 
 @main.command()

@@ -39,3 +39,39 @@ def interior_mask(shape: tuple[int, int], margin: int) -> np.ndarray:
     mask = np.zeros(shape, bool)
     mask[margin : shape[0] - margin, margin : shape[1] - margin] = True
     return mask
+
+
+def gain_bound(electrons: np.ndarray, *, n_frames: int, read_noise_e: float, dn_per_e: float,
+               shot_noise: bool = True, prior: float | None = None) -> np.ndarray:
+    """Per-pixel lower bound on the relative standard error of an estimated gain.
+
+    The Cramer-Rao bound of a pixel's gain from its own ``n_frames`` readings
+    of ``electrons`` each (every frame assumed as bright there as the one
+    given), with the scene known exactly: each reading's Fisher information
+    on the relative gain is ``e^2 / (e + r^2 + q^2 / 12)`` (shot noise, read
+    noise ``r`` and the ADC's step ``q = 1 / dn_per_e`` electrons). With
+    ``prior``, the spread of the pixel gains (the information a shrinkage
+    estimator adds), the Bayesian bound ``1 / sqrt(I + 1 / prior^2)``.
+    No estimator that learns a pixel's gain from its readings does better on
+    average; one that must also estimate the scene does worse.
+    """
+    e = np.clip(np.asarray(electrons, np.float64), 0.0, None)
+    variance = (e if shot_noise else 0.0) + read_noise_e**2 + 1.0 / (12.0 * dn_per_e**2)
+    with np.errstate(divide="ignore"):
+        information = n_frames * e**2 / variance + (0.0 if prior is None else np.float64(1.0) / np.square(prior))
+        return 1.0 / np.sqrt(information)
+
+
+def mixture_spread(sigmas: np.ndarray) -> float:
+    """:func:`robust_spread` (x 1, not percent) that zero-mean Gaussian errors of these
+    per-pixel standard deviations show in expectation: ``1.4826 m`` with
+    ``mean(P(|N(0, s_i^2)| < m)) = 1/2``."""
+    from scipy.optimize import brentq
+    from scipy.special import erf
+
+    s = np.asarray(sigmas, np.float64).ravel()
+    s = s[np.isfinite(s)]
+    if s.size == 0:
+        return float("nan")
+    below = lambda m: float(np.mean(erf(m / (np.sqrt(2.0) * s)))) - 0.5  # noqa: E731
+    return 1.4826 * brentq(below, 0.0, 10.0 * float(s.max()))

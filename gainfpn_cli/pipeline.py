@@ -575,7 +575,7 @@ def apply_gain_map(gain_map: Path, inputs, out_dir: Path, *, overwrite: bool = F
 
 def evaluate(out_dir: Path, sim_dir: Path) -> dict:
     """Residual gain FPN and the paper's MSE before/after, against a simulation's truth."""
-    from .truth import load_truth
+    from .truth import load_truth, residual_bound_percent
 
     k, _ = read_gain_map(out_dir / "gain_map.exr")
     planes, _ = read_exr_planes(out_dir / "gain_map.exr")
@@ -588,7 +588,14 @@ def evaluate(out_dir: Path, sim_dir: Path) -> dict:
     est = confidence > 0
     if not est.any():
         raise EstimationError(f"{out_dir}: the gain map has no estimated pixel")
-    return scores(k[..., 0], est, frame0, truth)
+    result = scores(k[..., 0], est, frame0, truth)
+    try:  # the frames the estimate was fitted to (one is held out to check it)
+        report = json.loads((out_dir / "report.json").read_text(encoding="utf-8"))
+        n_fit = len(report["inputs"]) - (1 if report.get("holdout") else 0)
+    except (OSError, ValueError, KeyError, TypeError):
+        n_fit = None
+    bound = None if n_fit is None else residual_bound_percent(truth, est, n_fit)
+    return {**result, "residual_bound_percent": bound, "bound_frames": n_fit}
 
 
 def scores(k: np.ndarray, est: np.ndarray, frame0: np.ndarray, truth) -> dict:

@@ -109,3 +109,19 @@ def load_truth(sim_dir: str | Path) -> Truth:
     except (OSError, ValueError, KeyError) as exc:
         raise InputError(f"{truth_dir}: unreadable truth ({exc})") from None
     return Truth(gain=gain["Y"], ideal=ideal["Y"], homographies=homographies, parameters=parameters)
+
+
+def residual_bound_percent(truth: Truth, mask: np.ndarray, n_frames: int) -> float | None:
+    """The residual gain FPN (percent, as :func:`metrics.residual_fpn_percent`) below which no
+    estimate from ``n_frames`` frames of this simulation can go on average over ``mask``:
+    :func:`metrics.gain_bound` with the simulated sensor's noise and its pixel FPN as the prior,
+    every frame as bright as the ideal frame 0. None if the parameters do not give the sensor."""
+    from .metrics import gain_bound, mixture_spread
+
+    try:
+        sensor = Sensor(**truth.parameters["sensor"])
+    except (KeyError, TypeError):
+        return None
+    sigma = gain_bound(truth.ideal[mask] / sensor.dn_per_e, n_frames=n_frames, read_noise_e=sensor.read_noise_e,
+                       dn_per_e=sensor.dn_per_e, shot_noise=sensor.shot_noise, prior=sensor.fpn_pixel)
+    return 100.0 * mixture_spread(sigma)

@@ -1,0 +1,63 @@
+import json
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from gainfpn_cli.cli import main
+from gainfpn_cli.metrics import gain_bound, mixture_spread, robust_spread
+
+READ, DN_PER_E = 3.0, 0.2
+
+
+def _readings(rng, gain, electrons, n):
+    """n readings per trial of a pixel of this gain: shot and read noise, rounded to DN, in electrons."""
+    counts = rng.poisson(gain * electrons, (n,) + np.shape(gain)) + rng.normal(0.0, READ, (n,) + np.shape(gain))
+    return np.round(counts * DN_PER_E) / DN_PER_E
+
+
+@pytest.mark.parametrize("electrons", [30.0, 400.0, 6000.0])
+def test_the_gain_bound_is_what_an_efficient_estimator_reaches(electrons):
+    # with the scene known, the mean of a pixel's readings over the expected
+    # signal is unbiased and efficient: its spread over trials is the bound
+    rng = np.random.default_rng(1)
+    estimates = _readings(rng, np.ones(40000), electrons, 8).mean(axis=0) / electrons
+    bound = gain_bound(np.array(electrons), n_frames=8, read_noise_e=READ, dn_per_e=DN_PER_E)
+    assert estimates.std() == pytest.approx(float(bound), rel=0.02)
+
+
+def test_with_a_prior_the_bound_is_the_posterior_spread():
+    # pixel gains drawn from the prior; the posterior mean's error spread is the Bayesian bound
+    rng = np.random.default_rng(2)
+    electrons, prior, n = 400.0, 0.01, 4
+    gain = 1.0 + prior * rng.standard_normal(40000)
+    direct = _readings(rng, gain, electrons, n).mean(axis=0) / electrons
+    information = 1.0 / float(gain_bound(np.array(electrons), n_frames=n, read_noise_e=READ, dn_per_e=DN_PER_E)) ** 2
+    posterior = (information * direct + 1.0 / prior**2) / (information + 1.0 / prior**2)
+    bound = float(gain_bound(np.array(electrons), n_frames=n, read_noise_e=READ, dn_per_e=DN_PER_E, prior=prior))
+    assert (posterior - gain).std() == pytest.approx(bound, rel=0.02)
+    assert bound < 1.0 / np.sqrt(information) and bound < prior
+    assert float(gain_bound(np.array(electrons), n_frames=n, read_noise_e=READ, dn_per_e=DN_PER_E, prior=0.0)) == 0
+
+
+def test_mixture_spread_is_the_robust_spread_errors_of_those_sigmas_show():
+    rng = np.random.default_rng(3)
+    sigmas = np.repeat([0.002, 0.005, 0.02], [300000, 200000, 100000])
+    expected = mixture_spread(sigmas)
+    assert robust_spread(1.0 + sigmas * rng.standard_normal(sigmas.size)) == pytest.approx(expected, rel=0.01)
+    assert mixture_spread(np.full(10, 0.01)) == pytest.approx(0.01, rel=1e-5)
+
+
+def test_evaluate_reports_the_bound_and_the_estimate_does_not_pass_it(tmp_path):
+    # a 12-bit RGGB burst (sample_data's): 1 % pixel FPN, 8 frames, one held out to check
+    runner = CliRunner()
+    sim, out = tmp_path / "sim", tmp_path / "out"
+    assert runner.invoke(main, ["simulate", str(sim), "--preset", "raw12", "--size", "160x128", "--frames", "8",
+                                "--seed", "2"]).exit_code == 0
+    assert runner.invoke(main, ["estimate", str(sim), "-o", str(out), "--quiet", "--workers", "1"]).exit_code == 0
+    result = runner.invoke(main, ["evaluate", str(out), "--truth", str(sim)])
+    assert "Cramer-Rao bound" in result.output
+    scores = json.loads((out / "evaluation.json").read_text())
+    assert scores["bound_frames"] == 7
+    assert 0.3 < scores["residual_bound_percent"] < 1.0  # 1 % FPN, shot noise of ~6000 e-: about 0.5 %
+    assert scores["residual_fpn_percent"] > scores["residual_bound_percent"]
