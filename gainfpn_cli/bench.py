@@ -183,7 +183,8 @@ def _make_burst(spec: BurstSpec, folder: Path) -> None:
     burst = simulate_burst(shape=spec.shape, n_frames=spec.n_frames, seed=spec.seed, scene=spec.scene,
                            sensor=sensor, supersample=spec.supersample, shake=shake,
                            moving_object=0.1 if spec.parallax else 0.0, parallax=spec.parallax)
-    save_burst(burst, folder, fmt="dng" if sensor.cfa else "exr", parameters=dataclasses.asdict(spec))
+    parameters = {**dataclasses.asdict(spec), "sensor_preset": spec.sensor, "sensor": dataclasses.asdict(sensor)}
+    save_burst(burst, folder, fmt="dng" if sensor.cfa else "exr", parameters=parameters)
 
 
 class _TreePeak:
@@ -430,7 +431,7 @@ def markdown(summary: dict) -> str:
     m = summary["machine"]
     lines = [f"Measured by `gainfpn bench{' --quick' if summary['quick'] else ''}` in {summary['duration_s']:.0f} s "
              f"on {m['cpus']} CPUs ({m['processor']}, {m['platform']}, Python {m['python']}).", "",
-             "| group | point | burst | residual FPN % | MSE before | MSE after | ratio | time s "
+             "| group | point | burst | residual FPN % (bound) | MSE before | MSE after | ratio | time s "
              "(read / motion / solve / write) | peak RSS MB |",
              "|---|---|---|---|---|---|---|---|---|"]
     for r in summary["points"]:
@@ -443,8 +444,9 @@ def markdown(summary: dict) -> str:
         if "parallel_speedup" in r:
             time_text = ", ".join(f"{k} {v:.2f}" for k, v in t["solve_by_workers_s"].items()) + \
                 f"; speed-up {r['parallel_speedup']:.2f}x"
-        fmt = lambda key, spec: format(r[key], spec) if key in r else ""  # noqa: E731
-        lines.append(f"| {r['group']} | {r['label']} | {burst} | {fmt('residual_fpn_percent', '.2f')} | "
+        fmt = lambda key, spec: format(r[key], spec) if r.get(key) is not None else ""  # noqa: E731
+        bound = f" ({fmt('residual_bound_percent', '.2f')})" if r.get("residual_bound_percent") is not None else ""
+        lines.append(f"| {r['group']} | {r['label']} | {burst} | {fmt('residual_fpn_percent', '.2f')}{bound} | "
                      f"{fmt('mse_before', '.2f')} | {fmt('mse_after', '.2f')} | {fmt('mse_ratio', '.1f')} | "
                      f"{time_text} | {r['peak_rss_mb']:.0f} |")
     exponents = {r.get("fitted_time_exponent") for r in summary["points"]} - {None}
