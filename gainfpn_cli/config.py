@@ -171,6 +171,11 @@ class SolverConfig:
     robust_rounds: int = _key(
         2, non_negative_int, "accurate method: re-solves that down-weight comparisons that do not fit"
     )
+    phase_weights: str = _key(
+        "auto", choice("auto", "all", "none"),
+        "accurate method: weight each comparison by how well interpolation predicts it where its sample falls "
+        "between pixels (robust rounds); auto = on the planes of a RAW mosaic, which are aliased",
+    )
     fpn_model: str = _key(
         "auto", choice("auto", "none", "row", "column", "column+row", "pixel"),
         "accurate method: gain FPN model; auto picks the one with the lowest AIC",

@@ -302,7 +302,8 @@ def _solve_planes(burst, frames, excluded, n_fit, in_frame, cfg, progress):
     solved = {}
     for grid in _grids(burst, frames.shape[1:3], s.method):
         result, info = _solve_grid(grid.gather(fit), None if left_out is None else grid.gather(left_out),
-                                   in_frame.conjugate(grid.S), burst.saturation, cfg, progress, grid.name)
+                                   in_frame.conjugate(grid.S), burst.saturation, cfg, progress, grid.name,
+                                   mosaic=burst.cfa is not None)
         grid.scatter(k, result.k)
         grid.scatter(confidence, result.confidence)
         solved.update({name: {**info, "solved_on": grid.name} for name in grid.positions})
@@ -321,7 +322,7 @@ def _solve_planes(burst, frames, excluded, n_fit, in_frame, cfg, progress):
     return k, confidence, reports
 
 
-def _solve_grid(frames, excluded, motion, saturation, cfg, progress, name) -> tuple[GainResult, dict]:
+def _solve_grid(frames, excluded, motion, saturation, cfg, progress, name, mosaic=False) -> tuple[GainResult, dict]:
     s = cfg.solver
     update = progress(f"solve {name}", 0) if progress else None
     if s.method == "paper":
@@ -336,7 +337,8 @@ def _solve_grid(frames, excluded, motion, saturation, cfg, progress, name) -> tu
         return result, {"method": "paper", **result.stats}
     options = AccurateOptions(kernel=s.interpolation, anchors=s.anchors, partners=s.partners, rtol=s.rtol,
                               gauge_sigma=s.gauge_sigma, tile=s.tile,
-                              robust_rounds=s.robust_rounds, gain_range=s.gain_range)
+                              robust_rounds=s.robust_rounds, gain_range=s.gain_range,
+                              phase_weights=s.phase_weights == "all" or (s.phase_weights == "auto" and mosaic))
     result = solve_accurate(frames, motion, options=options, saturation=saturation, excluded=excluded,
                             workers=s.workers, progress=update)
     return result, {"method": "accurate", **result.stats}

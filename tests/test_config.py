@@ -135,6 +135,7 @@ STRATEGIES = {
     "solver.gauge_sigma": st.floats(0.1, 1e3, allow_nan=False),
     "solver.tile": st.integers(1, 10000),
     "solver.fpn_model": st.sampled_from(["auto", "none", "row", "column", "column+row", "pixel"]),
+    "solver.phase_weights": st.sampled_from(["auto", "all", "none"]),
     "solver.workers": st.integers(1, 64),
     "solver.max_condition": st.floats(1e-3, 1e300, allow_nan=False),
     "solver.gain_range": st.tuples(st.floats(0.01, 0.99), st.floats(1.01, 100.0)),
