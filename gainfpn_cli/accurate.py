@@ -316,7 +316,7 @@ def sample_phase(M: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
 
 
 def _phase_weighted(weights, residuals, valid, pair_maps, shape) -> list[np.ndarray]:
-    """``weights`` times each comparison's precision ``u / (a + b phase)``.
+    """``weights`` times each comparison's precision ``u / (a + b phase)`` (in place: fresh arrays only).
 
     Interpolation errs little where a sample falls near a source pixel and
     most midway between pixels, and more where the scene is sharper than the

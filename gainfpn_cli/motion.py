@@ -315,7 +315,8 @@ def estimate_motion(
     field models (:mod:`fieldfit`) are fitted to them, and scene layers
     (:mod:`layers`) split off the points the best global model leaves. With
     ``model="auto"`` the burst gets the model with the lowest :func:`gric`
-    summed over frames -- the simplest the data support.
+    summed over frames -- the simplest the data support. No corner is taken
+    where the bool ``(H, W)`` mask ``ignore`` is set (pixels known to move).
     """
     if model != "auto" and model not in ALL_MODELS:
         raise ValueError(f"model must be auto or one of {', '.join(ALL_MODELS)}, got {model!r}")
@@ -323,6 +324,8 @@ def estimate_motion(
     if frames.ndim != 3 or frames.shape[0] < 2:
         raise ValueError(f"frames must have shape (F, H, W) with F >= 2, got {frames.shape}")
     shape = frames.shape[1:]
+    if ignore is not None and np.shape(ignore) != shape:
+        raise ValueError(f"ignore must have the frames' shape {shape}, got {np.shape(ignore)}")
     lo, hi = np.percentile(frames[0], [0.5, 99.5])
     if hi - lo <= 0:
         raise EstimationError("the reference frame is uniform: no texture to track")
