@@ -118,9 +118,12 @@ def _parse_scene(ctx, param, value):
                    "as the background.")
 @click.option("--exposure", type=click.FloatRange(0, min_open=True), default=0.75, show_default=True,
               help="Electrons at scene value 1, as a fraction of full well.")
+@click.option("--exposure-jitter", type=click.FloatRange(0, 1), default=0.0, show_default=True,
+              help="Sigma of the log of each frame's exposure relative to the first (auto-exposure, flicker).")
 @click.option("--overwrite", is_flag=True, help="Replace the results in a non-empty OUT_DIR.")
 def simulate(out_dir, preset, n_frames, size, fmt, seed, scene, fpn_pixel, fpn_column, fpn_row, read_noise, bits,
-             black, cfa, shake, rotation, drift, wobble, distortion, moving_object, parallax, exposure, overwrite):
+             black, cfa, shake, rotation, drift, wobble, distortion, moving_object, parallax, exposure, exposure_jitter,
+             overwrite):
     """Write a synthetic burst with known gains and motion into OUT_DIR."""
     import dataclasses
 
@@ -141,10 +144,11 @@ def simulate(out_dir, preset, n_frames, size, fmt, seed, scene, fpn_pixel, fpn_c
         raise click.BadParameter("needs --moving-object: the nearer plane is the disk", param_hint="--parallax")
     parameters = {"seed": seed, "shape": list(size), "n_frames": n_frames, "exposure": exposure,
                   "scene": str(scene), "format": fmt, "moving_object": moving_object, "parallax": parallax,
+                  "exposure_jitter": exposure_jitter,
                   "sensor": dataclasses.asdict(sensor), "shake": dataclasses.asdict(motion)}
     paths = simulate_to(out_dir, fmt=fmt, overwrite=overwrite, scene=scene, parameters=parameters, shape=size,
                         n_frames=n_frames, sensor=sensor, shake=motion, exposure=exposure, seed=seed,
-                        moving_object=moving_object, parallax=parallax)
+                        moving_object=moving_object, parallax=parallax, exposure_jitter=exposure_jitter)
     click.echo(f"wrote {len(paths)} {fmt.upper()} frames ({size[1]}x{size[0]}) and truth/ to {out_dir}")
 
 

@@ -98,6 +98,9 @@ class Burst:
     object_offsets : ndarray, shape (F, 2), optional
         The moving object's own displacement (reference px) in each frame:
         frame t sees the object's reference point ``p`` at ``H_t (p + o_t)``.
+    exposures : ndarray, shape (F,), optional
+        Each frame's exposure relative to the reference's (1); None if all
+        are exposed alike.
     """
 
     frames: np.ndarray
@@ -108,6 +111,7 @@ class Burst:
     moving: np.ndarray | None = None
     waves: np.ndarray | None = None
     object_offsets: np.ndarray | None = None
+    exposures: np.ndarray | None = None
 
     @property
     def saturation(self) -> int:
@@ -347,6 +351,7 @@ def simulate_burst(
     optics_sigma_px: float = 0.0,
     moving_object: float = 0.0,
     parallax: float = 0.0,
+    exposure_jitter: float = 0.0,
     seed: int = 0,
 ) -> Burst:
     """Simulate a hand-held burst with known gain, motion and ideal frames.
@@ -374,13 +379,21 @@ def simulate_burst(
         not move on its own, its image displaced ``1 + parallax`` times as
         far as the background's at its centre (the parallax of a camera that
         translates; 0.5: half as near again).
+    exposure_jitter : float
+        Sigma of the log of each frame's exposure relative to the
+        reference's (auto-exposure steps, flickering light); 0: all alike.
     """
     h, w = shape
     if h < 2 or w < 2 or n_frames < 1:
         raise ValueError(f"need frames of at least 2x2 and one frame, got shape {shape}, {n_frames} frames")
     if sensor.cfa is not None and (len(sensor.cfa) != 4 or set(sensor.cfa) - set(CFA_CHANNEL)):
         raise ValueError(f"sensor.cfa must be a 2x2 RGB layout such as RGGB, got {sensor.cfa!r}")
-    rng_scene, rng_motion, rng_gain, rng_noise = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(4))
+    # a fifth stream for the exposures: the first four (and every burst without jitter) stay as they were
+    rng_scene, rng_motion, rng_gain, rng_noise, rng_exposure = (
+        np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(5))
+    exposures = np.exp(exposure_jitter * rng_exposure.standard_normal(n_frames)) if exposure_jitter > 0 else None
+    if exposures is not None:
+        exposures[0] = 1.0
     homographies = shake_homographies(n_frames, shape, shake, rng_motion)
     waves = wave_parameters(n_frames, shape, shake, rng_motion)
     margin = _margin(homographies, shape) + (0 if waves is None else int(np.ceil(np.abs(waves[:, :, 1]).sum(1).max())))
@@ -419,14 +432,14 @@ def simulate_burst(
             moving[t] = cover.reshape(shape) > 1e-3
         if colour:
             light = _mosaic(light, sensor.cfa)
-        electrons = exposure * sensor.full_well_e * light
+        electrons = exposure * (1.0 if exposures is None else exposures[t]) * sensor.full_well_e * light
         ideal[t] = np.minimum(electrons * sensor.dn_per_e, full_scale_dn)
         collected = rng_noise.poisson(gain * electrons) if sensor.shot_noise else gain * electrons
         signal = collected + rng_noise.normal(0.0, sensor.read_noise_e, shape)
         counts = np.floor(np.clip(signal, 0.0, sensor.full_well_e) * sensor.dn_per_e + 0.5) + sensor.black_level
         frames[t] = np.clip(counts, 0, sensor.white_level)
     return Burst(frames=frames, gain=gain, ideal=ideal, homographies=homographies, sensor=sensor, moving=moving,
-                 waves=waves, object_offsets=None if obj is None else obj[2])
+                 waves=waves, object_offsets=None if obj is None else obj[2], exposures=exposures)
 
 
 def _moving_object(raster, fraction, n_frames, shape, scale, margin, rng, homographies=None, parallax=0.0):

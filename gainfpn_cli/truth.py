@@ -6,7 +6,7 @@ Layout of a simulation directory::
     truth/gain.exr               channel Y: the true gain a
     truth/ideal.exr              channel Y: noise-free, FPN-free frame 0, DN after black
     truth/homographies.json      H_t_ref per frame, and the conventions
-    truth/simulation.json        every parameter needed to make the burst again
+    truth/simulation.json        every parameter needed to make the burst again (and the exposures drawn)
 """
 
 from __future__ import annotations
@@ -81,7 +81,9 @@ def save_burst(
             indent=1,
         ),
     )
-    write_text(truth_dir / "simulation.json", json.dumps({"version": __version__, **(parameters or {})}, indent=1))
+    drawn = {} if burst.exposures is None else {"exposures": burst.exposures.tolist()}  # relative to frame 0
+    write_text(truth_dir / "simulation.json", json.dumps({"version": __version__, **(parameters or {}), **drawn},
+                                                         indent=1))
     return paths
 
 
