@@ -127,6 +127,7 @@ class _Tile:
     motion: GlobalWarp | FieldWarp  # maps computed in the worker: a field model's cost a moment each
     saturation: float
     options: AccurateOptions
+    exposures: tuple | None = None  # each frame's exposure relative to the reference, or None (all alike)
 
 
 def solve_accurate(
@@ -136,6 +137,7 @@ def solve_accurate(
     options: AccurateOptions = AccurateOptions(),
     saturation: float | None = None,
     excluded: np.ndarray | None = None,
+    exposures=None,
     workers: int = 2,
     progress=None,
 ) -> GainResult:
@@ -151,6 +153,9 @@ def solve_accurate(
         Samples at or above this level are excluded.
     excluded : ndarray of bool, shape (F, H, W), optional
         Samples to leave out as well (a moving object's, which follow no motion).
+    exposures : sequence of float, optional
+        Each frame's exposure relative to the reference (:mod:`exposure`):
+        frames are compared divided by it. None: all exposed alike.
     """
     frames = np.asarray(frames, dtype=np.float32)
     if frames.ndim != 3 or frames.shape[0] < 2:
@@ -164,6 +169,10 @@ def solve_accurate(
         raise ValueError(f"kernel must be one of {', '.join(KERNELS)}, got {options.kernel!r}")
     if options.anchors not in ("all", "reference"):
         raise ValueError(f"anchors must be 'all' or 'reference', got {options.anchors!r}")
+    if exposures is not None:
+        exposures = tuple(float(c) for c in np.ravel(exposures))
+        if len(exposures) != frames.shape[0] or not all(np.isfinite(c) and c > 0 for c in exposures):
+            raise ValueError(f"exposures must be {frames.shape[0]} positive numbers, got {exposures}")
     _check_motion(motion.homographies, frames.shape[1:])
     h, w = frames.shape[1:]
     radius = KERNELS[options.kernel][1]
@@ -173,7 +182,7 @@ def solve_accurate(
             f"{2 * radius} px on each side (use solver.interpolation: bilinear, or solver.method: paper)"
         )
     sat = np.inf if saturation is None else float(saturation)
-    tiles = _tiles(frames, excluded, motion, sat, options)
+    tiles = _tiles(frames, excluded, motion, sat, options, exposures)
     results = map_ordered(_solve_tile, tiles, workers=workers, progress=progress)
     # float32 frame-sized arrays (a 12 MP frame: 48 MB each); tiles' results are freed as they are blended
     k_sum = np.zeros((h, w), np.float32)
@@ -226,7 +235,7 @@ def _check_motion(homographies: np.ndarray, shape: tuple[int, int]) -> None:
         )
 
 
-def _tiles(frames, excluded, motion, saturation, options) -> list[_Tile]:
+def _tiles(frames, excluded, motion, saturation, options, exposures=None) -> list[_Tile]:
     n, h, w = frames.shape
     core, halo = options.tile, options.halo
     anchors = range(n) if options.anchors == "all" else [0]
@@ -238,7 +247,7 @@ def _tiles(frames, excluded, motion, saturation, options) -> list[_Tile]:
             y1, x1 = min(h, cy + core + halo), min(w, cx + core + halo)
             crop = (slice(None), slice(y0, y1), slice(x0, x1))
             tiles.append(_Tile(y0, x0, frames[crop], None if excluded is None else excluded[crop], pairs, motion,
-                               saturation, options))
+                               saturation, options, exposures))
     return tiles
 
 
@@ -275,6 +284,8 @@ def _solve_tile(tile: _Tile) -> tuple[np.ndarray, np.ndarray, int]:
     if tile.excluded is not None:
         good &= ~tile.excluded
     frames /= unit
+    if tile.exposures is not None:  # after the clipping test, which is on the counts as read
+        frames /= np.asarray(tile.exposures)[:, None, None]
     shape = frames.shape[1:]
     region = (tile.y0, tile.x0) + shape
     # (s, t, M_st in tile pixels); a map is used every iteration: bounded once

@@ -123,6 +123,12 @@ class InputConfig:
         "DN (after black level) at or above which a pixel is clipped; null = from the file",
     )
     dark: str | None = _key(None, optional(path_string), "master dark frame subtracted first; null = none")
+    exposure: str = _key(
+        "per-frame",
+        choice("per-frame", "fixed"),
+        "per-frame: measure each frame's exposure against the reference along the motion and compare frames "
+        "at equal exposure (auto-exposure steps, flickering light); fixed: take every frame as exposed alike",
+    )
 
 
 @dataclass(frozen=True)

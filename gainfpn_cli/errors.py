@@ -17,5 +17,9 @@ class EstimationError(GainFPNError):
     """The data do not allow an estimate (no motion, no texture, ...)."""
 
 
+class TrackingError(EstimationError):
+    """A frame's motion could not be fitted: too few points tracked into it."""
+
+
 class GainFPNWarning(UserWarning):
     """A result was produced but is weaker than asked for."""

@@ -25,12 +25,13 @@ from .accurate import AccurateOptions, power_of_two_scale, sigma_from_confidence
 from .bayer import OFFSETS, green_lattice, grey_proxy, plane_to_mosaic
 from .blocks import GainResult, solve_paper
 from .config import Config, dump_config
-from .errors import EstimationError, InputError
+from .errors import EstimationError, InputError, TrackingError
 from .fpnmodel import select_model
 from .io import (ATTR_CFA, ATTR_SATURATION, atomic_output, check_consistent, check_out_dir, find_frames,
                  read_exr_planes, read_frame, staged_directory, write_exr, write_text)
 from .metrics import mse, residual_fpn_percent
-from .motion import estimate_motion, moving_masks
+from .exposure import relative_exposures, significant
+from .motion import estimate_motion, moving_masks, rough_exposures
 from .solver import SolveOptions
 from .warp import positions as warp_positions
 from .warp import sample, valid_samples
@@ -198,34 +199,46 @@ def estimate(burst: LoadedBurst, cfg: Config, *, progress: Progress | None = Non
         raise EstimationError(f"frames of {frames.shape[2]}x{frames.shape[1]} px are too small to track motion "
                               f"(need at least {MIN_TRACK_SIDE} px per side{binned})")
     update = progress("motion", len(frames) - 1) if progress else None
-    motion = estimate_motion(motion_images, model=cfg.motion.model, progress=update)
+    try:
+        motion = estimate_motion(motion_images, model=cfg.motion.model, progress=update)
+    except TrackingError:
+        rough = rough_exposures(motion_images)
+        if cfg.input.exposure == "fixed" or np.max(np.abs(rough - 1.0)) <= ROUGH_EXPOSURE:
+            raise
+        # frames exposed too differently to track alike (a 10 % jump loses nearly every track): again,
+        # each brought to the reference's level by its median
+        motion = estimate_motion(motion_images, model=cfg.motion.model, exposures=rough)
+    exposures, exposure_report = _exposures(motion_images, motion.warp, burst, cfg)
+    if np.max(np.abs(exposures - 1.0)) > RETRACK_EXPOSURE:  # tracked again, every frame at the reference's level
+        motion = estimate_motion(motion_images, model=cfg.motion.model, exposures=exposures)
+        exposures, exposure_report = _exposures(motion_images, motion.warp, burst, cfg)
     in_frame = motion.warp.conjugate(np.linalg.inv(S_motion))  # the motion in frame pixels
-    excluded, moving = _moving(frames, motion_images, motion.warp, burst.cfa, cfg)
+    excluded, moving = _moving(frames, motion_images, motion.warp, burst.cfa, cfg, exposures)
     del motion_images
     timings["motion_s"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     n_fit = len(fit_frames)
     fit = in_frame.select(range(n_fit))
-    k, confidence, plane_reports = _solve_planes(burst, frames, excluded, n_fit, fit, cfg, progress)
+    k, confidence, plane_reports = _solve_planes(burst, frames, excluded, exposures, n_fit, fit, cfg, progress)
     for round_ in range(1, cfg.motion.refine_rounds + 1):
         corrected, _ = _motion_images(frames * (k / np.float32(power_of_two_scale(frames[0])))[None], burst.cfa)
         # the model is chosen again: on frames without their gain pattern the choice can change (a forced
         # "layers" would also lose the base model auto chose for it)
         ignore = _reference_moving(excluded, corrected.shape[1:], burst.cfa)  # no corner on what the round masked
-        motion = estimate_motion(corrected, model=cfg.motion.model, ignore=ignore)
+        motion = estimate_motion(corrected, model=cfg.motion.model, ignore=ignore, exposures=exposures)
         reason = f"{motion.reason}; refined on frames corrected by k (round {round_})"
         motion = dataclasses.replace(motion, reason=reason)
         in_frame = motion.warp.conjugate(np.linalg.inv(S_motion))
-        excluded, moving = _moving(frames, corrected, motion.warp, burst.cfa, cfg)
+        excluded, moving = _moving(frames, corrected, motion.warp, burst.cfa, cfg, exposures)
         del corrected
         fit = in_frame.select(range(n_fit))
-        k, confidence, plane_reports = _solve_planes(burst, frames, excluded, n_fit, fit, cfg, progress)
+        k, confidence, plane_reports = _solve_planes(burst, frames, excluded, exposures, n_fit, fit, cfg, progress)
     timings["solve_s"] = time.perf_counter() - t0
 
     holdout_report = None
     if holdout:
-        ratio = _holdout_ratio(burst, frames, excluded, in_frame, k, cfg.solver.method)
+        ratio = _holdout_ratio(burst, frames, excluded, exposures, in_frame, k, cfg.solver.method)
         holdout_report = {"frame": burst.paths[order[-1]].name, "residual_ratio": ratio, "passed": ratio < 1.0}
         if ratio >= 1.0:
             warnings.append(f"the estimate does not reduce the brightness-constancy residual on the held-out frame "
@@ -249,6 +262,9 @@ def estimate(burst: LoadedBurst, cfg: Config, *, progress: Progress | None = Non
             # per frame, reference first: pixels left out because they do not follow the global motion
             "moving_percent": moving,
         },
+        # per frame, reference first: its exposure relative to the reference's; "relative" (the measured
+        # one where it differs from 1 significantly) is divided out
+        "exposure": exposure_report,
         "planes": plane_reports,
         "holdout": holdout_report,
         # only the accurate solver's confidence is a calibrated standard error
@@ -275,13 +291,13 @@ def _reference_moving(excluded: np.ndarray | None, shape: tuple[int, int], cfa: 
     return excluded[0, ::2, ::2][: shape[0], : shape[1]] if cfa else excluded[0]
 
 
-def _moving(frames, motion_images, warp, cfa, cfg) -> tuple[np.ndarray | None, list[float] | None]:
+def _moving(frames, motion_images, warp, cfa, cfg, exposures) -> tuple[np.ndarray | None, list[float] | None]:
     """Pixels of each frame that do not follow the estimated motion, ``(F, H, W)`` bool, which
     the solvers leave out; and the percentage of each frame's pixels. None without ``mask_moving``.
     A CFA's masks (on 2x2 cells) are brought to photosites one frame at a time."""
     if not cfg.motion.mask_moving:
         return None, None
-    masks = moving_masks(motion_images, warp)
+    masks = moving_masks(motion_images, warp, exposures=exposures)
     if cfa:  # grey-proxy pixel (y, x) is the CFA cell of photosites (2y.., 2x..)
         cells, masks = masks, np.empty(frames.shape[:3], bool)
         for t, mask in enumerate(cells):
@@ -292,7 +308,31 @@ def _moving(frames, motion_images, warp, cfa, cfg) -> tuple[np.ndarray | None, l
     return masks, [round(100 * float(m.mean()), 2) for m in masks]
 
 
-def _solve_planes(burst, frames, excluded, n_fit, in_frame, cfg, progress):
+#: Frames are tracked again, each at the reference's brightness, when one's
+#: exposure (a significant one: :func:`exposure.significant`) differs from
+#: the reference's by more than this fraction.
+RETRACK_EXPOSURE = 0.002
+#: When the frames cannot be tracked alike, they are tracked again each at the
+#: reference's level by its median (:func:`motion.rough_exposures`) if one's
+#: differs by more than this fraction.
+ROUGH_EXPOSURE = 0.02
+
+
+def _exposures(motion_images, warp, burst, cfg) -> tuple[np.ndarray, dict]:
+    """Each frame's exposure relative to the reference (:mod:`exposure`), measured on the motion
+    images (a CFA's 2x2 cells: a clipped photosite lowers its cell, the median shrugs a few off)
+    and kept where it differs from 1 significantly; all ones with ``input.exposure: fixed``. And
+    what the report says of them."""
+    if cfg.input.exposure == "fixed":
+        return np.ones(len(motion_images)), {"mode": "fixed"}
+    measured, errors = relative_exposures(motion_images, warp, saturation=burst.saturation)
+    used = significant(measured, errors)
+    return used, {"mode": "per-frame", "relative": [round(float(c), 6) for c in used],
+                  "measured": [round(float(c), 6) for c in measured],
+                  "log_standard_error": [float(e) if np.isfinite(e) else None for e in errors]}
+
+
+def _solve_planes(burst, frames, excluded, exposures, n_fit, in_frame, cfg, progress):
     """k and confidence of every plane from the first ``n_fit`` frames, with the FPN model and the gauge."""
     s = cfg.solver
     k = np.ones(frames.shape[1:], np.float32)
@@ -303,7 +343,7 @@ def _solve_planes(burst, frames, excluded, n_fit, in_frame, cfg, progress):
     for grid in _grids(burst, frames.shape[1:3], s.method):
         result, info = _solve_grid(grid.gather(fit), None if left_out is None else grid.gather(left_out),
                                    in_frame.conjugate(grid.S), burst.saturation, cfg, progress, grid.name,
-                                   mosaic=burst.cfa is not None)
+                                   mosaic=burst.cfa is not None, exposures=exposures[:n_fit])
         grid.scatter(k, result.k)
         grid.scatter(confidence, result.confidence)
         solved.update({name: {**info, "solved_on": grid.name} for name in grid.positions})
@@ -322,12 +362,17 @@ def _solve_planes(burst, frames, excluded, n_fit, in_frame, cfg, progress):
     return k, confidence, reports
 
 
-def _solve_grid(frames, excluded, motion, saturation, cfg, progress, name, mosaic=False) -> tuple[GainResult, dict]:
+def _solve_grid(frames, excluded, motion, saturation, cfg, progress, name, mosaic=False,
+                exposures=None) -> tuple[GainResult, dict]:
     s = cfg.solver
     update = progress(f"solve {name}", 0) if progress else None
     if s.method == "paper":
         if excluded is not None:  # the published form takes zeroed pixels as missing
             frames = np.where(excluded, np.float32(0), frames)
+        if exposures is not None and np.any(exposures != 1.0):  # clipped pixels marked missing before scaling
+            if saturation is not None:
+                frames = np.where(frames >= saturation, np.float32(0), frames)
+            frames = frames / np.asarray(exposures, np.float32)[:, None, None]
         region = (0, 0) + frames.shape[1:]
         positions = np.stack([warp_positions(motion.pair(0, t, region), frames.shape[1:])
                               for t in range(1, len(frames))])
@@ -340,7 +385,7 @@ def _solve_grid(frames, excluded, motion, saturation, cfg, progress, name, mosai
                               robust_rounds=s.robust_rounds, gain_range=s.gain_range,
                               phase_weights=s.phase_weights == "all" or (s.phase_weights == "auto" and mosaic))
     result = solve_accurate(frames, motion, options=options, saturation=saturation, excluded=excluded,
-                            workers=s.workers, progress=update)
+                            exposures=exposures, workers=s.workers, progress=update)
     return result, {"method": "accurate", **result.stats}
 
 
@@ -364,8 +409,9 @@ def _physical(result: GainResult, gain_range: tuple[float, float], structured: b
     return GainResult(k.astype(np.float32), confidence.astype(np.float32), result.stats)
 
 
-def _holdout_ratio(burst, frames, excluded, in_frame, k, method: str) -> float:
-    """Brightness-constancy residual of the held-out frame against the reference, with k over without."""
+def _holdout_ratio(burst, frames, excluded, exposures, in_frame, k, method: str) -> float:
+    """Brightness-constancy residual of the held-out frame against the reference, with k over without
+    (the held-out frame brought to the reference's exposure)."""
     num = den = 0.0
     sat = np.inf if burst.saturation is None else burst.saturation
     scale = np.float32(power_of_two_scale(frames[0]))  # about 1: k times a frame stays far from float32's limits
@@ -375,7 +421,7 @@ def _holdout_ratio(burst, frames, excluded, in_frame, k, method: str) -> float:
         if excluded is not None:
             ref_ok &= ~grid.gather(np.broadcast_to(excluded[0, ..., None], frames.shape[1:]))
             held_ok &= ~grid.gather(np.broadcast_to(excluded[-1, ..., None], frames.shape[1:]))
-        ref, held = ref / scale, held / scale
+        ref, held = ref / scale, held / (scale * np.float32(exposures[-1]))
         shape = ref.shape
         M = in_frame.conjugate(grid.S).pair(0, len(frames) - 1, (0, 0) + shape)
         valid = valid_samples(held_ok, M, shape) & ref_ok

@@ -120,6 +120,7 @@ STRATEGIES = {
     "input.reference": st.integers(0, 1000),
     "input.saturation": st.none() | st.floats(0, 1e9, allow_nan=False),
     "input.dark": st.none() | st.text(min_size=1, max_size=20),
+    "input.exposure": st.sampled_from(["per-frame", "fixed"]),
     "motion.model": st.sampled_from(["auto", "translation", "affine", "homography", "rolling", "mesh"]),
     "motion.refine_rounds": st.integers(0, 5),
     "motion.mask_moving": st.booleans(),

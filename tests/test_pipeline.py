@@ -74,7 +74,7 @@ def test_holdout_rejects_an_estimate_that_does_not_help(exr_burst, monkeypatch):
     cfg = load_config(overrides={"solver.workers": 1})
     burst = load_burst([folder], cfg)
 
-    def harmful(burst_, frames, excluded, n_fit, H, cfg_, progress):
+    def harmful(burst_, frames, excluded, exposures, n_fit, H, cfg_, progress):
         k = 1 + 0.1 * np.random.default_rng(0).standard_normal(frames.shape[1:])
         return k, np.ones(frames.shape[1:]), {"Y": {"method": "harmful"}}
 

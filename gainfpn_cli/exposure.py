@@ -1,0 +1,101 @@
+"""Each frame's exposure relative to the reference.
+
+Brightness constancy holds along a trajectory only if every frame is
+exposed alike. Real bursts are not: auto-exposure steps, the flicker of
+mains-powered lights, an aperture that settles. A frame exposed ``c`` times
+the reference reads ``c`` times the light at every pixel, so the solver
+compares it divided by ``c``. Measured on 240x320x8 bursts (paper sensor,
+procedural scene, two seeds) with a random exposure of each frame, left
+uncompensated: a 1 % spread cut the MSE reduction from 25.7x / 22.6x to
+24.2x / 19.9x, 3 % to 15.7x / 10.2x, and 10 % broke the point tracking.
+
+The factor of frame ``t`` is the median ratio of the two frames over the
+pixels both see, along the estimated motion, taken both ways: frame ``t``
+sampled at the reference's pixels, and the reference at frame ``t``'s. The
+sampled side is interpolated, so its FPN and noise are smoothed and the
+median log-ratio of one way is biased by about half the difference of the
+two sides' variances (0.06 % with 5 % FPN); the other way is biased
+oppositely, and the geometric mean of the two cancels it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .trajectory import as_warp
+from .warp import sample, valid_samples
+
+#: About this many pixels are compared per frame and way (every n-th on each
+#: axis of a larger frame). Measured with the true motion on 240x320 frames
+#: of 5 % FPN: factors within 0.08 % when every 4th pixel (4 800) counted.
+SAMPLES = 2**18
+
+
+def relative_exposures(images: np.ndarray, motion, *, saturation: float | None = None,
+                       excluded: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The exposure of every frame relative to the reference (the first, whose is 1).
+
+    Parameters
+    ----------
+    images : ndarray, shape (F, H, W)
+        Linear frames (offset removed), the reference first.
+    motion : GlobalWarp, FieldWarp, LayeredWarp or ndarray of shape (F, 3, 3)
+        Their motion in these pixels.
+    saturation : float, optional
+        Pixels at or above it are clipped and not compared.
+    excluded : ndarray of bool, shape (F, H, W), optional
+        Pixels not to compare either (a moving object's).
+
+    Returns
+    -------
+    factors : ndarray of float64, shape (F,)
+        ``c_t``: frame ``t`` reads ``c_t`` times what the reference reads of the same scene point.
+    errors : ndarray of float64, shape (F,)
+        The standard error of ``log c_t``, from the spread of the log-ratios (:func:`significant`
+        tells a real difference from noise); 0 for the reference, inf for a frame with nothing
+        in common with it (its factor is then 1).
+    """
+    images = np.asarray(images, np.float32)
+    warp = as_warp(motion)
+    n, h, w = images.shape
+    sat = np.inf if saturation is None else float(saturation)
+    good = [(im > 0) & (im < sat) & (True if excluded is None else ~excluded[t]) for t, im in enumerate(images)]
+    region = (0, 0, h, w)
+    step = max(1, int(np.sqrt(h * w / SAMPLES)))
+    factors, errors = np.ones(n), np.zeros(n)
+    for t in range(1, n):
+        ways = [_log_ratios(images, good, warp.pair(a, b, region), a, b, step) for a, b in ((0, t), (t, 0))]
+        if any(r.size == 0 for r in ways):
+            errors[t] = np.inf  # nothing in common (the motion stage refuses such frames)
+            continue
+        medians = [float(np.median(r)) for r in ways]
+        factors[t] = float(np.exp(0.5 * (medians[0] - medians[1])))
+        # the median's standard error, 1.2533 sigma / sqrt(n) for normal samples; the two ways share
+        # their pixels, so their errors are averaged, not combined as independent
+        spreads = [1.4826 * float(np.median(np.abs(r - m))) for r, m in zip(ways, medians)]
+        errors[t] = 0.5 * sum(1.2533 * sp / np.sqrt(r.size) for sp, r in zip(spreads, ways))
+    return factors, errors
+
+
+#: A measured exposure counts when its log differs from 0 by more than this
+#: many standard errors: interpolation correlates neighbouring ratios, so the
+#: error of the median is larger than the independent-sample formula says.
+SIGNIFICANCE = 4.0
+
+
+def significant(factors: np.ndarray, errors: np.ndarray) -> np.ndarray:
+    """``factors`` with those that do not differ from 1 beyond SIGNIFICANCE standard errors set to
+    1: the simplest exposure model the frames support (equal exposure unless shown otherwise)."""
+    factors = np.asarray(factors, np.float64)
+    return np.where(np.abs(np.log(factors)) > SIGNIFICANCE * np.asarray(errors), factors, 1.0)
+
+
+def _log_ratios(images, good, M, a: int, b: int, step: int) -> np.ndarray:
+    """``log(b sampled at a's pixels) - log(a)`` (float64: exact under a power-of-two scale) over
+    a's pixels (every ``step``-th) that both see well."""
+    own = images[a][::step, ::step]
+    # only the compared pixels are sampled: q = step q' for the homography, every step-th position of a map
+    M = M @ np.diag([step, step, 1.0]) if M.shape == (3, 3) else M[::step, ::step]
+    seen = valid_samples(good[b], M, own.shape, kernel="bilinear") & good[a][::step, ::step]
+    other = sample(images[b], M, own.shape, kernel="bilinear")[seen]
+    return np.log(other.astype(np.float64)) - np.log(own[seen].astype(np.float64))
