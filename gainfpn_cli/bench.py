@@ -41,6 +41,7 @@ class BurstSpec:
     wobble_px: float = 0.0
     distortion_px: float = 0.0
     parallax: float = 0.0  # a nearer plane over 10 % of the frame, displaced 1 + parallax times as far
+    exposure_jitter: float = 0.0  # sigma of the log of each frame's exposure relative to the first
     sensor: str = SENSOR  # a simulate.PRESETS name; one with a CFA is written as DNG
 
     @property
@@ -49,8 +50,9 @@ class BurstSpec:
         waves = f"-w{self.wobble_px:g}-d{self.distortion_px:g}" if self.wobble_px or self.distortion_px else ""
         near = f"-p{self.parallax:g}" if self.parallax else ""
         sensor = "" if self.sensor == SENSOR else f"-{self.sensor}"
+        jitter = f"-e{self.exposure_jitter:g}" if self.exposure_jitter else ""
         return (f"{w}x{h}-f{self.n_frames}-s{self.seed}-{self.scene}-c{self.fpn_column:g}-ss{self.supersample}"
-                f"{waves}{near}{sensor}")
+                f"{waves}{near}{jitter}{sensor}")
 
     @property
     def megapixels(self) -> float:
@@ -115,6 +117,9 @@ def _all_points(quick: bool) -> list[Point]:
     near = dataclasses.replace(base, parallax=1.0)  # a nearer plane: the layers model against one warp
     points += [Point("motion_model", f"parallax 1.0, {model}", near, overrides={"motion.model": model})
                for model in ("auto", "homography")]
+    jittered = dataclasses.replace(base, exposure_jitter=0.03)  # auto-exposure / flicker: measured and divided out
+    points += [Point("exposure", f"3 % exposure jitter, {mode}", jittered, overrides={"input.exposure": mode})
+               for mode in ("per-frame", "fixed")]
     points += [Point("refine", "1 refinement round", base, overrides={"motion.refine_rounds": 1})]
     points += [Point("scene", "procedural (smoother)", dataclasses.replace(base, scene="procedural"))]
     points += [Point("scene", "3 % pixel + 4 % column", dataclasses.replace(base, fpn_column=0.04))]
@@ -182,7 +187,8 @@ def _make_burst(spec: BurstSpec, folder: Path) -> None:
     shake = Shake(wobble_px=spec.wobble_px, distortion_px=spec.distortion_px)
     burst = simulate_burst(shape=spec.shape, n_frames=spec.n_frames, seed=spec.seed, scene=spec.scene,
                            sensor=sensor, supersample=spec.supersample, shake=shake,
-                           moving_object=0.1 if spec.parallax else 0.0, parallax=spec.parallax)
+                           moving_object=0.1 if spec.parallax else 0.0, parallax=spec.parallax,
+                           exposure_jitter=spec.exposure_jitter)
     parameters = {**dataclasses.asdict(spec), "sensor_preset": spec.sensor, "sensor": dataclasses.asdict(sensor)}
     save_burst(burst, folder, fmt="dng" if sensor.cfa else "exr", parameters=parameters)
 
