@@ -199,19 +199,7 @@ def estimate(burst: LoadedBurst, cfg: Config, *, progress: Progress | None = Non
         raise EstimationError(f"frames of {frames.shape[2]}x{frames.shape[1]} px are too small to track motion "
                               f"(need at least {MIN_TRACK_SIDE} px per side{binned})")
     update = progress("motion", len(frames) - 1) if progress else None
-    try:
-        motion = estimate_motion(motion_images, model=cfg.motion.model, progress=update)
-    except TrackingError:
-        rough = rough_exposures(motion_images)
-        if cfg.input.exposure == "fixed" or np.max(np.abs(rough - 1.0)) <= ROUGH_EXPOSURE:
-            raise
-        # frames exposed too differently to track alike (a 10 % jump loses nearly every track): again,
-        # each brought to the reference's level by its median
-        motion = estimate_motion(motion_images, model=cfg.motion.model, exposures=rough)
-    exposures, exposure_report = _exposures(motion_images, motion.warp, burst, cfg)
-    if np.max(np.abs(exposures - 1.0)) > RETRACK_EXPOSURE:  # tracked again, every frame at the reference's level
-        motion = estimate_motion(motion_images, model=cfg.motion.model, exposures=exposures)
-        exposures, exposure_report = _exposures(motion_images, motion.warp, burst, cfg)
+    motion, exposures, exposure_report = _track(motion_images, burst, cfg, update)
     in_frame = motion.warp.conjugate(np.linalg.inv(S_motion))  # the motion in frame pixels
     excluded, moving = _moving(frames, motion_images, motion.warp, burst.cfa, cfg, exposures)
     del motion_images
@@ -276,6 +264,26 @@ def estimate(burst: LoadedBurst, cfg: Config, *, progress: Progress | None = Non
         "warnings": warnings,
     }
     return Estimate(k.astype(np.float32), confidence.astype(np.float32), report, warnings)
+
+
+def _track(motion_images, burst, cfg, progress) -> tuple:
+    """The motion of the burst, each frame's exposure relative to the reference and what the report
+    says of them. Frames are tracked as exposed alike first; where their exposures turn out to
+    differ, again at the reference's level; frames too differently exposed to track at all, again
+    at their median's level before their exposures are measured."""
+    try:
+        motion = estimate_motion(motion_images, model=cfg.motion.model, progress=progress)
+    except TrackingError:
+        rough = rough_exposures(motion_images)
+        if cfg.input.exposure == "fixed" or np.max(np.abs(rough - 1.0)) <= ROUGH_EXPOSURE:
+            raise
+        # a 10 % jump loses nearly every track
+        motion = estimate_motion(motion_images, model=cfg.motion.model, exposures=rough)
+    exposures, report = _exposures(motion_images, motion.warp, burst, cfg)
+    if np.max(np.abs(exposures - 1.0)) > RETRACK_EXPOSURE:
+        motion = estimate_motion(motion_images, model=cfg.motion.model, exposures=exposures)
+        exposures, report = _exposures(motion_images, motion.warp, burst, cfg)
+    return motion, exposures, report
 
 
 def _frame_homography(H: np.ndarray, S: np.ndarray) -> list:
