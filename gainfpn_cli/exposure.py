@@ -59,7 +59,7 @@ def relative_exposures(images: np.ndarray, motion, *, saturation: float | None =
     warp = as_warp(motion)
     n, h, w = images.shape
     sat = np.inf if saturation is None else float(saturation)
-    good = [(im > 0) & (im < sat) & (True if excluded is None else ~excluded[t]) for t, im in enumerate(images)]
+    good = [_usable(im, sat, None if excluded is None else excluded[t]) for t, im in enumerate(images)]
     region = (0, 0, h, w)
     step = max(1, int(np.sqrt(h * w / SAMPLES)))
     factors, errors = np.ones(n), np.zeros(n)
@@ -90,12 +90,26 @@ def significant(factors: np.ndarray, errors: np.ndarray) -> np.ndarray:
     return np.where(np.abs(np.log(factors)) > SIGNIFICANCE * np.asarray(errors), factors, 1.0)
 
 
+def _usable(image: np.ndarray, saturation: float, excluded: np.ndarray | None) -> np.ndarray:
+    """uint8 mask, nonzero where ``0 < image < saturation`` and not excluded (one pass of
+    ``cv2.inRange``: a 12 MP frame's numpy comparisons took 40 ms)."""
+    import cv2
+
+    low = float(np.nextafter(np.float32(0), np.float32(1)))  # bounds are included: the next floats inwards
+    high = float(np.nextafter(np.float32(saturation), np.float32(0)) if saturation < np.finfo(np.float32).max
+                 else np.finfo(np.float32).max)
+    mask = cv2.inRange(image, low, high)
+    if excluded is not None:
+        mask[excluded] = 0
+    return mask
+
+
 def _log_ratios(images, good, M, a: int, b: int, step: int) -> np.ndarray:
     """``log(b sampled at a's pixels) - log(a)`` (float64: exact under a power-of-two scale) over
     a's pixels (every ``step``-th) that both see well."""
     own = images[a][::step, ::step]
     # only the compared pixels are sampled: q = step q' for the homography, every step-th position of a map
     M = M @ np.diag([step, step, 1.0]) if M.shape == (3, 3) else M[::step, ::step]
-    seen = valid_samples(good[b], M, own.shape, kernel="bilinear") & good[a][::step, ::step]
+    seen = valid_samples(good[b], M, own.shape, kernel="bilinear") & (good[a][::step, ::step] > 0)
     other = sample(images[b], M, own.shape, kernel="bilinear")[seen]
     return np.log(other.astype(np.float64)) - np.log(own[seen].astype(np.float64))
