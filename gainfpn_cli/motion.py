@@ -135,9 +135,10 @@ def to_uint8(frame: np.ndarray, lo: float, hi: float) -> np.ndarray:
 
 def rough_exposures(frames: np.ndarray) -> np.ndarray:
     """Each frame's exposure relative to the first from their medians (every 4th pixel on each
-    axis; 1 where either is not positive). Off by up to 4.5 % on a drifting 240x320 burst of one
-    exposure (the view changes), and an 8-bit median moves in steps: only a fallback for frames
-    too differently exposed to track at all (the measured factors: :mod:`exposure`)."""
+    axis; 1 where either is not positive). The view changes between frames (the medians of
+    smoothed frames of one exposure differed by up to 4.5 % on a drifting 240x320 burst) and an
+    8-bit median moves in steps: only a fallback for frames too differently exposed to track at
+    all (the measured factors: :mod:`exposure`)."""
     medians = [float(np.median(np.asarray(f)[::4, ::4])) for f in frames]
     ref = medians[0]
     return np.array([m / ref if ref > 0 and m > 0 and np.isfinite(m / ref) else 1.0 for m in medians])
