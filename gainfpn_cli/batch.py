@@ -28,7 +28,7 @@ from .io import remove_staging
 
 #: Columns of summary.csv (summary.json holds the same rows).
 COLUMNS = ("name", "status", "frames", "motion_model", "fpn_models", "input_fpn_pixel_percent",
-           "predicted_residual_fpn_percent", "holdout_ratio", "time_s", "message")
+           "predicted_residual_fpn_percent", "holdout_ratio", "exposure_spread_percent", "time_s", "message")
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
 INSTALL_HINT = "batch on a cluster needs Dask: pip install 'gainfpn[dask]' (dask[distributed])"
 
@@ -119,6 +119,8 @@ def _failed(name: str, message: str) -> dict:
 
 
 def _row(name: str, report: dict, seconds: float) -> dict:
+    from .pipeline import exposure_spread_percent
+
     planes = report["planes"].values()
     pixel = [p["input_fpn_percent"]["pixel"] for p in planes if "input_fpn_percent" in p]
     holdout = report.get("holdout") or {}
@@ -131,6 +133,7 @@ def _row(name: str, report: dict, seconds: float) -> dict:
         "input_fpn_pixel_percent": round(sum(pixel) / len(pixel), 3) if pixel else None,
         "predicted_residual_fpn_percent": report["predicted_residual_fpn_percent"],
         "holdout_ratio": holdout.get("residual_ratio"),
+        "exposure_spread_percent": round(exposure_spread_percent(report), 3),  # divided out (0: one exposure)
         "time_s": round(seconds, 2),
         "message": "; ".join(report["warnings"]),
     }

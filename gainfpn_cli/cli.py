@@ -205,7 +205,7 @@ def estimate(inputs, out_dir, config_path, preset, method, workers, block_size, 
     from .config import load_config
     from .io import check_out_dir
     from .pipeline import estimate as run_estimate
-    from .pipeline import load_burst, write_estimate
+    from .pipeline import exposure_spread_percent, load_burst, write_estimate
 
     cfg = load_config(config_path, preset=preset, overrides={
         "solver.method": method, "solver.workers": workers, "solver.block_size": block_size, "solver.lam": lam,
@@ -230,11 +230,11 @@ def estimate(inputs, out_dir, config_path, preset, method, workers, block_size, 
     r = result.report
     models = sorted({p.get("fpn_model", p["method"]) for p in r["planes"].values()})
     predicted = r["predicted_residual_fpn_percent"]
-    spread = max(abs(c - 1.0) for c in r["exposure"].get("relative", [1.0]))
+    spread = exposure_spread_percent(r)
     click.echo(f"{len(burst.paths)} frames, motion {r['motion']['model']}, FPN model {'/'.join(models)}, "
                f"{100 * r['estimated_fraction']:.0f}% of pixels estimated"
                + (f", predicted residual FPN {predicted:.2f}%" if predicted is not None else "")
-               + (f", exposures differ by up to {100 * spread:.1f}% (divided out)" if spread > 0 else "")
+               + (f", exposures differ by up to {spread:.1f}% (divided out)" if spread > 0 else "")
                + f" -> {out_dir}")
 
 

@@ -286,6 +286,12 @@ def _track(motion_images, burst, cfg, progress) -> tuple:
     return motion, exposures, report
 
 
+def exposure_spread_percent(report: dict) -> float:
+    """The largest exposure difference (%) from the reference that an estimate's report says was
+    divided out; 0 when none was (or the report predates exposures)."""
+    return 100.0 * max(abs(c - 1.0) for c in report.get("exposure", {}).get("relative", [1.0]))
+
+
 def _frame_homography(H: np.ndarray, S: np.ndarray) -> list:
     """``H_t_ref`` of the motion images in frame pixels (mosaic photosites for RAW), as nested lists."""
     H = np.asarray(S) @ H @ np.linalg.inv(S)

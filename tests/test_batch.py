@@ -59,6 +59,7 @@ def _check_done(out: Path, rows: list, names=("one", "two", "three")):
         assert by_name[name]["status"].startswith("done"), by_name[name]
         assert set(p.name for p in (out / name).iterdir()) == OUTPUTS
         assert by_name[name]["frames"] == 6 and by_name[name]["motion_model"]
+        assert by_name[name]["exposure_spread_percent"] == 0.0  # simulated with one exposure
     assert not (out / "broken").exists()
     assert not [p for p in out.iterdir() if p.name.startswith(".")]  # no staging folder left behind
     assert json.loads((out / "summary.json").read_text()) == rows
@@ -171,3 +172,15 @@ def test_the_solver_runs_its_tiles_on_dask_bit_identically(bursts, cluster):
         remote = estimate(burst, cfg)
     assert local.report["planes"]["Y"]["tiles"] > 4
     assert np.array_equal(local.k, remote.k) and np.array_equal(local.confidence, remote.confidence)
+
+
+def test_the_summary_gives_the_largest_exposure_difference_divided_out():
+    from gainfpn_cli.batch import _row
+
+    report = {"planes": {"Y": {"method": "accurate", "fpn_model": "pixel", "input_fpn_percent": {"pixel": 5.0}}},
+              "warnings": [], "inputs": ["a", "b", "c"], "motion": {"model": "affine"},
+              "predicted_residual_fpn_percent": 0.6, "holdout": None,
+              "exposure": {"mode": "per-frame", "relative": [1.0, 1.05, 0.97], "measured": [1.0, 1.05, 0.97]}}
+    assert _row("x", report, 1.0)["exposure_spread_percent"] == 5.0
+    del report["exposure"]  # a report written before exposures were measured
+    assert _row("x", report, 1.0)["exposure_spread_percent"] == 0.0
