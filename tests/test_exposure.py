@@ -23,24 +23,37 @@ def _frames(burst):
 
 @pytest.mark.parametrize("seed", [1, 6])
 def test_each_frames_exposure_is_measured_within_its_standard_error(seed):
-    # measured (seeds 1-8): within 0.13 % of the truth, at most 2.1 standard errors of ~0.06 %
+    # measured (seeds 1-8): within 0.07 % of the truth, at most 1.34 standard errors of ~0.05 %
     burst = simulate_burst(shape=SHAPE, n_frames=6, seed=seed, exposure_jitter=0.05)
     factors, errors = relative_exposures(_frames(burst), burst.homographies, saturation=burst.saturation)
     assert factors[0] == 1.0 and errors[0] == 0.0
     deviation = np.abs(np.log(factors / burst.exposures))
-    assert np.all(deviation < 0.002)
+    assert np.all(deviation < 0.0012)
     assert np.all(deviation[1:] < 3.0 * errors[1:])
     assert np.all(errors[1:] < 0.001)
     assert np.array_equal(significant(factors, errors), factors)  # 5 % differences are far beyond the noise
 
 
 def test_equal_exposures_are_not_taken_for_different_ones():
-    # measured (seeds 1-8): at most 1.6 standard errors from 1, so none is significant
+    # measured (seeds 1-8): at most 1.32 standard errors from 1, so none is significant
     burst = simulate_burst(shape=SHAPE, n_frames=6, seed=6)
     factors, errors = relative_exposures(_frames(burst), burst.homographies, saturation=burst.saturation)
     assert np.any(factors != 1.0)  # measured, with its noise
     assert np.all(np.abs(np.log(factors[1:])) < SIGNIFICANCE * errors[1:])
     assert np.array_equal(significant(factors, errors), np.ones(6))
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_dark_frames_and_a_moving_object_do_not_bias_the_exposures(seed):
+    # 8-bit frames of median 4 DN: measured within 0.19 % / 0.34 % (the median of the ratios, tried
+    # first, was pulled toward 1: 1.4 % / 2.6 %); a 10 % moving object left in (seeds 3-5): 0.044 %
+    dark = simulate_burst(shape=SHAPE, n_frames=6, seed=seed, exposure_jitter=0.05, exposure=0.03)
+    assert np.median(_frames(dark)[0]) <= 5
+    factors, _ = relative_exposures(_frames(dark), dark.homographies, saturation=dark.saturation)
+    assert np.all(np.abs(np.log(factors / dark.exposures)) < 0.005)
+    moving = simulate_burst(shape=(200, 260), n_frames=6, seed=seed + 3, exposure_jitter=0.05, moving_object=0.1)
+    factors, _ = relative_exposures(_frames(moving), moving.homographies, saturation=moving.saturation)
+    assert np.all(np.abs(np.log(factors / moving.exposures)) < 0.001)
 
 
 def test_exposures_do_not_depend_on_the_frames_scale():
