@@ -62,12 +62,15 @@ def relative_exposures(images: np.ndarray, motion, *, saturation: float | None =
     warp = as_warp(motion)
     n, h, w = images.shape
     sat = np.inf if saturation is None else float(saturation)
-    good = [_usable(im, sat, None if excluded is None else excluded[t]) for t, im in enumerate(images)]
+    usable = lambda t: _usable(images[t], sat, None if excluded is None else excluded[t])  # noqa: E731
+    reference_ok = usable(0)  # the frames' masks one at a time: a 12 MP x 16 stack's would take 192 MB
     region = (0, 0, h, w)
     step = max(1, int(np.sqrt(h * w / SAMPLES)))
     factors, errors = np.ones(n), np.zeros(n)
     for t in range(1, n):
-        ways = [_log_ratio(images, good, warp.pair(a, b, region), a, b, step) for a, b in ((0, t), (t, 0))]
+        ok = usable(t)
+        ways = [_log_ratio(images[0], reference_ok, images[t], ok, warp.pair(0, t, region), step),
+                _log_ratio(images[t], ok, images[0], reference_ok, warp.pair(t, 0, region), step)]
         if any(way is None for way in ways):
             errors[t] = np.inf  # nothing in common (the motion stage refuses such frames)
             continue
@@ -112,15 +115,16 @@ def _usable(image: np.ndarray, saturation: float, excluded: np.ndarray | None) -
 TRIM = 2.5
 
 
-def _log_ratio(images, good, M, a: int, b: int, step: int) -> tuple[float, float] | None:
-    """``log(sum b / sum a)`` over a's pixels (every ``step``-th) that both see well, ``b`` sampled
-    at them, outlying pairs trimmed, with its standard error (pairs taken as independent); None if
-    there are none. In float64, so that a power-of-two scale of the frames changes it by ~1e-15."""
-    own = images[a][::step, ::step]
+def _log_ratio(image, image_ok, other, other_ok, M, step: int) -> tuple[float, float] | None:
+    """``log(sum other / sum image)`` over ``image``'s pixels (every ``step``-th) that both see well
+    (``*_ok``: :func:`_usable` masks), ``other`` sampled at ``M`` of them, outlying pairs trimmed,
+    with its standard error (pairs taken as independent); None if there are none. In float64, so
+    that a power-of-two scale of the frames changes it by ~1e-15."""
+    own = image[::step, ::step]
     # only the compared pixels are sampled: q = step q' for the homography, every step-th position of a map
     M = M @ np.diag([step, step, 1.0]) if M.shape == (3, 3) else M[::step, ::step]
-    seen = valid_samples(good[b], M, own.shape, kernel="bilinear") & (good[a][::step, ::step] > 0)
-    other = sample(images[b], M, own.shape, kernel="bilinear")[seen].astype(np.float64)
+    seen = valid_samples(other_ok, M, own.shape, kernel="bilinear") & (image_ok[::step, ::step] > 0)
+    other = sample(other, M, own.shape, kernel="bilinear")[seen].astype(np.float64)
     own = own[seen].astype(np.float64)
     if own.size == 0:
         return None
