@@ -79,6 +79,17 @@ def relative_exposures(images: np.ndarray, motion, *, saturation: float | None =
     return factors, errors
 
 
+def rough_exposures(frames: np.ndarray) -> np.ndarray:
+    """Each frame's exposure relative to the first from their medians (every 4th pixel on each
+    axis; 1 where either is not positive). The view changes between frames (the medians of
+    smoothed frames of one exposure differed by up to 4.5 % on a drifting 240x320 burst) and an
+    8-bit median moves in steps: only a fallback for frames too differently exposed to track at
+    all (the measured factors: :func:`relative_exposures`)."""
+    medians = [float(np.median(np.asarray(f)[::4, ::4])) for f in frames]
+    ref = medians[0]
+    return np.array([m / ref if ref > 0 and m > 0 and np.isfinite(m / ref) else 1.0 for m in medians])
+
+
 #: A measured exposure counts when its log differs from 0 by more than this
 #: many standard errors: interpolation correlates neighbouring pairs, so the
 #: error is larger than the independent-pair formula says.

@@ -133,17 +133,6 @@ def to_uint8(frame: np.ndarray, lo: float, hi: float) -> np.ndarray:
     return cv2.addWeighted(frame, alpha, frame, 0.0, -float(lo) * alpha, dtype=cv2.CV_8U)  # one pass
 
 
-def rough_exposures(frames: np.ndarray) -> np.ndarray:
-    """Each frame's exposure relative to the first from their medians (every 4th pixel on each
-    axis; 1 where either is not positive). The view changes between frames (the medians of
-    smoothed frames of one exposure differed by up to 4.5 % on a drifting 240x320 burst) and an
-    8-bit median moves in steps: only a fallback for frames too differently exposed to track at
-    all (the measured factors: :mod:`exposure`)."""
-    medians = [float(np.median(np.asarray(f)[::4, ::4])) for f in frames]
-    ref = medians[0]
-    return np.array([m / ref if ref > 0 and m > 0 and np.isfinite(m / ref) else 1.0 for m in medians])
-
-
 def tracking_image(frame: np.ndarray, lo: float, hi: float) -> np.ndarray:
     """The 8-bit, FPN-suppressed image that points are tracked on."""
     import cv2
@@ -517,8 +506,8 @@ def _reduced_smooth(frames: np.ndarray, factor: int, exposures=None) -> tuple[li
         return blurred if factor == 1 else cv2.resize(blurred, size, interpolation=cv2.INTER_AREA)
 
     reduced = [smoothed(f) for f in frames]
-    for r, c in zip(reduced, np.ones(len(frames)) if exposures is None else exposures):
-        if c != 1.0:
+    if exposures is not None:
+        for r, c in zip(reduced, exposures):
             r /= np.float32(c)  # a fresh array: the frames are not touched
     return reduced, to_reduced
 

@@ -30,8 +30,8 @@ from .fpnmodel import select_model
 from .io import (ATTR_CFA, ATTR_SATURATION, atomic_output, check_consistent, check_out_dir, find_frames,
                  read_exr_planes, read_frame, staged_directory, write_exr, write_text)
 from .metrics import mse, residual_fpn_percent
-from .exposure import relative_exposures, significant
-from .motion import estimate_motion, moving_masks, rough_exposures
+from .exposure import relative_exposures, rough_exposures, significant
+from .motion import estimate_motion, moving_masks
 from .solver import SolveOptions
 from .warp import positions as warp_positions
 from .warp import sample, valid_samples
@@ -327,7 +327,7 @@ def _moving(frames, motion_images, warp, cfa, cfg, exposures) -> tuple[np.ndarra
 #: the reference's by more than this fraction.
 RETRACK_EXPOSURE = 0.002
 #: When the frames cannot be tracked alike, they are tracked again each at the
-#: reference's level by its median (:func:`motion.rough_exposures`) if one's
+#: reference's level by its median (:func:`exposure.rough_exposures`) if one's
 #: differs by more than this fraction.
 ROUGH_EXPOSURE = 0.02
 
