@@ -229,22 +229,50 @@ def coarse_shift(reference: np.ndarray, frame: np.ndarray) -> np.ndarray:
     return shift if np.all(np.isfinite(shift)) else np.zeros(2)
 
 
-def fit_models(src: np.ndarray, dst: np.ndarray, *, threshold: float = INLIER_PX) -> tuple[dict[str, np.ndarray], np.ndarray]:
+def fit_models(src: np.ndarray, dst: np.ndarray, *, threshold: float = INLIER_PX,
+               shape: tuple[int, int] | None = None) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """Fit translation, affine and homography to point pairs on one robust inlier set.
 
     The inliers are those of a robust homography (``threshold`` px), refined
     by least-squares refits until stable (see LOCAL_ROUNDS); each model is
-    then fitted by least squares on them. Returns the 3x3
-    matrices by model and the inlier mask.
+    then fitted by least squares on them. Given the frame's ``shape``, the
+    points that set leaves are searched for a second one, and whichever
+    spans more of the frame (:func:`coverage`) is kept: the dominant motion
+    is the one most of the frame follows, not the one with the most points
+    (a crisp moving object can hold more corners than a soft background).
+    Returns the 3x3 matrices by model and the inlier mask.
     """
     import cv2
 
     n = len(src)
     if n < MIN_POINTS["homography"]:
         raise EstimationError(f"only {n} points could be tracked; need {MIN_POINTS['homography']}")
+    inliers = _robust_inliers(src, dst, threshold)
+    if inliers is None:
+        raise EstimationError("no homography fits the tracked points")
+    rest = np.flatnonzero(~inliers)
+    if shape is not None and len(rest) >= MIN_POINTS["homography"]:
+        other = _robust_inliers(src[rest], dst[rest], threshold)
+        if other is not None and coverage(src[rest[other]], shape) > coverage(src[inliers], shape):
+            inliers = np.zeros(n, bool)
+            inliers[rest[other]] = True
+    if inliers.sum() < MIN_POINTS["homography"]:
+        raise EstimationError(f"only {int(inliers.sum())} inliers; need {MIN_POINTS['homography']}")
+    s, d = src[inliers], dst[inliers]
+    H, _ = cv2.findHomography(s, d, 0)
+    A = _fit_affine(s, d)
+    T = np.eye(3)
+    T[:2, 2] = np.mean(d - s, axis=0)
+    return {"translation": T, "affine": A, "homography": H / H[2, 2]}, inliers
+
+
+def _robust_inliers(src: np.ndarray, dst: np.ndarray, threshold: float) -> np.ndarray | None:
+    """Inliers of a robust homography (GC-RANSAC), then of least-squares refits until stable; None if none fits."""
+    import cv2
+
     _, mask = cv2.findHomography(src, dst, cv2.USAC_ACCURATE, threshold, maxIters=5000, confidence=0.9999)
     if mask is None:
-        raise EstimationError("no homography fits the tracked points")
+        return None
     inliers = mask.ravel().astype(bool)
     for _ in range(LOCAL_ROUNDS):  # local optimisation: refit, re-select at LOCAL_SIGMAS x the noise
         if inliers.sum() < MIN_POINTS["homography"]:
@@ -257,14 +285,19 @@ def fit_models(src: np.ndarray, dst: np.ndarray, *, threshold: float = INLIER_PX
         if np.array_equal(grown, inliers):
             break
         inliers = grown
-    if inliers.sum() < MIN_POINTS["homography"]:
-        raise EstimationError(f"only {int(inliers.sum())} inliers; need {MIN_POINTS['homography']}")
-    s, d = src[inliers], dst[inliers]
-    H, _ = cv2.findHomography(s, d, 0)
-    A = _fit_affine(s, d)
-    T = np.eye(3)
-    T[:2, 2] = np.mean(d - s, axis=0)
-    return {"translation": T, "affine": A, "homography": H / H[2, 2]}, inliers
+    return inliers
+
+
+#: :func:`coverage` counts the cells of a COVER_GRID x COVER_GRID grid over the frame.
+COVER_GRID = 8
+
+
+def coverage(points: np.ndarray, shape: tuple[int, int]) -> int:
+    """How many cells of a COVER_GRID x COVER_GRID grid over a frame of ``shape`` hold one of the ``(x, y)`` points."""
+    h, w = shape
+    col = np.clip((np.asarray(points)[:, 0] * COVER_GRID / w).astype(int), 0, COVER_GRID - 1)
+    row = np.clip((np.asarray(points)[:, 1] * COVER_GRID / h).astype(int), 0, COVER_GRID - 1)
+    return int(np.unique(row * COVER_GRID + col).size)
 
 
 def _fit_affine(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
@@ -425,7 +458,7 @@ def _layered(frames: np.ndarray, layers, exposures) -> LayeredWarp:
 
 def _fit_frame(src, dst, shape, candidates) -> tuple[dict, dict]:
     """Every candidate model fitted to one frame's points; its report entry (GRIC, RMS residuals)."""
-    globals_, inliers = fit_models(src, dst)
+    globals_, inliers = fit_models(src, dst, shape=shape)
     fits: dict = {name: globals_[name] for name in MODEL_PARAMS}
     residuals = {name: transfer_residuals(H, src, dst) for name, H in fits.items()}
     used = {name: inliers for name in MODEL_PARAMS}
