@@ -372,11 +372,12 @@ def estimate_motion(
     candidates = ALL_MODELS if model == "auto" else [model]
     per_frame_models = [m for m in candidates if m in MODELS] or ["homography"]  # layers start from a homography
     exposures = np.ones(len(frames)) if exposures is None else exposures
-    fits, per_frame, dst_all = [], [], np.full((len(frames) - 1, len(src_all), 2), np.nan)
+    fits, per_frame, oks, dst_all = [], [], [], np.full((len(frames) - 1, len(src_all), 2), np.nan)
     for t in range(1, len(frames)):
         c = float(exposures[t])  # frame t / c is at the reference's level
         moved, ok = track_corners(ref8, tracking_image(frames[t], lo * c, hi * c), corners)
         dst_all[t - 1, ok] = moved[ok]
+        oks.append(ok)
         try:
             fit, info = _fit_frame(src_all[ok], moved[ok], shape, per_frame_models)
         except EstimationError as exc:
@@ -386,14 +387,15 @@ def estimate_motion(
         per_frame.append(info)
         if progress:
             progress(1)
-    totals = {name: sum(f["gric"][name] for f in per_frame) for name in per_frame_models}
-    layers = None
-    if "layers" in candidates:
-        base = min(MODEL_PARAMS, key=lambda m: totals[m]) if model == "auto" else "homography"
-        homographies = np.array([np.eye(3)] + [f[base] for f in fits])
-        layers = find_layers(src_all, dst_all, homographies)
-        if layers.n_layers > 1 or model == "layers":  # one layer is the base model itself
-            totals["layers"] = _layers_gric(layers, per_frame, base)
+    # surfaces that move on their own (layers) are searched for whatever the model: a point on one does so
+    # in every frame, so no frame's models are fitted to it (an object that barely moves in one frame would
+    # otherwise pull that frame's warp, which the frames where it moves apart do not)
+    totals, base, layers = _base_and_layers(fits, per_frame, src_all, dst_all, per_frame_models, model)
+    if layers.n_layers > 1:  # one layer is the base model itself
+        fits, per_frame = _refit(src_all, dst_all, oks, shape, per_frame_models, layers.members > 0, fits, per_frame)
+        totals, base, layers = _base_and_layers(fits, per_frame, src_all, dst_all, per_frame_models, model)
+    if "layers" in candidates and (layers.n_layers > 1 or model == "layers"):
+        totals["layers"] = _layers_gric(layers, per_frame, base)
     if model == "auto":
         chosen = min(totals, key=totals.get)
         reason = "lowest total GRIC: " + ", ".join(f"{m} {v:.1f}" for m, v in totals.items())
@@ -415,7 +417,7 @@ def estimate_motion(
             f"no motion: every frame is within {STILL_PX} px of the reference, so the gain cannot be "
             "estimated (pan or shake the camera during the burst; a scene with no texture of its own looks the same)"
         )
-    described = [] if layers is None or chosen != "layers" else [
+    described = [] if chosen != "layers" else [
         {"model": m, "points": int((layers.members == i + 1).sum())} for i, m in enumerate(layers.models)]
     return MotionResult(warp.homographies, chosen, per_frame, reason, warp, described)
 
@@ -456,19 +458,31 @@ def _layered(frames: np.ndarray, layers, exposures) -> LayeredWarp:
     return LayeredWarp(layers.homographies, labels, to_reduced)
 
 
-def _fit_frame(src, dst, shape, candidates) -> tuple[dict, dict]:
-    """Every candidate model fitted to one frame's points; its report entry (GRIC, RMS residuals)."""
-    globals_, inliers = fit_models(src, dst, shape=shape)
+def _fit_frame(src, dst, shape, candidates, exclude=None) -> tuple[dict, dict]:
+    """Every candidate model fitted to one frame's points; its report entry (GRIC, RMS residuals).
+    Points set in the bool ``exclude`` (on a surface that moves on its own) are scored, not fitted."""
+    fitted = np.flatnonzero(np.ones(len(src), bool) if exclude is None else ~exclude)
+    if len(fitted) < MIN_POINTS["homography"]:
+        fitted = np.arange(len(src))
+
+    def on_all(mask: np.ndarray) -> np.ndarray:  # a mask over the fitted points, over all of them
+        out = np.zeros(len(src), bool)
+        out[fitted[mask]] = True
+        return out
+
+    globals_, inliers = fit_models(src[fitted], dst[fitted], shape=shape)
+    inliers = on_all(inliers)
     fits: dict = {name: globals_[name] for name in MODEL_PARAMS}
     residuals = {name: transfer_residuals(H, src, dst) for name, H in fits.items()}
     used = {name: inliers for name in MODEL_PARAMS}
     params = dict(MODEL_PARAMS)
     for name in FIELD_CELLS:
         if name in candidates:
-            fits[name] = fit_field(src, dst, globals_["homography"], shape, name)
+            fits[name] = fit_field(src[fitted], dst[fitted], globals_["homography"], shape, name)
             residuals[name] = field_residuals(fits[name], src, dst, shape)
-            # a fit with too few points keeps none: judge it on all
-            used[name] = fits[name].keep if fits[name].keep.any() else np.ones(len(src), bool)
+            # a fit with too few points keeps none: judge it on all it was fitted to
+            keep = fits[name].keep
+            used[name] = on_all(keep if keep.any() else np.ones(len(fitted), bool))
             params[name] = fits[name].dof
     # the tracking noise: the smallest any candidate reaches on the points it keeps
     sigma2 = max(min(_noise_variance(residuals[m][used[m]]) for m in candidates), 1e-8)
@@ -476,6 +490,28 @@ def _fit_frame(src, dst, shape, candidates) -> tuple[dict, dict]:
     rms = {m: float(np.sqrt(np.mean(residuals[m][used[m]] ** 2))) for m in candidates}
     info = {"tracked": int(len(src)), "inliers": int(inliers.sum()), "gric": scores, "rms": rms, "sigma2": sigma2}
     return fits, info
+
+
+def _base_and_layers(fits, per_frame, src, dst, candidates, model: str) -> tuple[dict, str, object]:
+    """Each per-frame model's GRIC summed over frames; the global model layers are split off from
+    (the best one under ``auto``, else a homography); and the layers (:func:`layers.find_layers`)."""
+    totals = {name: sum(f["gric"][name] for f in per_frame) for name in candidates}
+    base = min(MODEL_PARAMS, key=lambda m: totals[m]) if model == "auto" else "homography"
+    return totals, base, find_layers(src, dst, np.array([np.eye(3)] + [f[base] for f in fits]))
+
+
+def _refit(src, dst, oks, shape, candidates, exclude, fits, per_frame) -> tuple[list, list]:
+    """Each frame's models fitted again without the points set in ``exclude``; a frame keeps its fit
+    where too few points are left."""
+    out_fits, out_info = [], []
+    for t, ok in enumerate(oks):
+        try:
+            fit, info = _fit_frame(src[ok], dst[t, ok], shape, candidates, exclude=exclude[ok])
+        except EstimationError:
+            fit, info = fits[t], per_frame[t]
+        out_fits.append(fit)
+        out_info.append(info)
+    return out_fits, out_info
 
 
 def _assemble(fits: list[dict], chosen: str, shape) -> GlobalWarp | FieldWarp:
