@@ -28,6 +28,16 @@ import numpy as np
 SENSOR = "paper"
 
 
+#: The hand-held motions of issue 4's accuracy target: the default shake, a 4 px shake with 0.5 degree
+#: rotations, and a 25 px drift.
+MOTIONS = {"shake": {}, "4 px shake": {"translation_px": 2.5, "rotation_deg": 0.5},
+           "25 px drift": {"translation_px": 1.0, "rotation_deg": 0.2, "drift_px": 25.0}}
+#: Bursts each motion-accuracy point of the plan scores.
+MOTION_SEEDS = 8
+#: Issue 4's target: RMS trajectory error (px) over the frame's background, in every frame.
+MOTION_TARGET_PX = 0.05
+
+
 @dataclass(frozen=True)
 class BurstSpec:
     """A simulated burst: enough to make it again."""
@@ -42,6 +52,8 @@ class BurstSpec:
     distortion_px: float = 0.0
     parallax: float = 0.0  # a nearer plane over 10 % of the frame, displaced 1 + parallax times as far
     exposure_jitter: float = 0.0  # sigma of the log of each frame's exposure relative to the first
+    moving_object: float = 0.0  # a disk over this fraction of the frame, moving on its own
+    motion: str = "shake"  # a key of MOTIONS
     sensor: str = SENSOR  # a simulate.PRESETS name; one with a CFA is written as DNG
 
     @property
@@ -51,8 +63,10 @@ class BurstSpec:
         near = f"-p{self.parallax:g}" if self.parallax else ""
         sensor = "" if self.sensor == SENSOR else f"-{self.sensor}"
         jitter = f"-e{self.exposure_jitter:g}" if self.exposure_jitter else ""
+        mover = f"-o{self.moving_object:g}" if self.moving_object else ""
+        motion = "" if self.motion == "shake" else f"-{self.motion}"
         return (f"{w}x{h}-f{self.n_frames}-s{self.seed}-{self.scene}-c{self.fpn_column:g}-ss{self.supersample}"
-                f"{waves}{near}{jitter}{sensor}")
+                f"{waves}{near}{jitter}{mover}{motion}{sensor}")
 
     @property
     def megapixels(self) -> float:
@@ -61,7 +75,7 @@ class BurstSpec:
 
 @dataclass(frozen=True)
 class Point:
-    """One measurement: ``kind`` is pipeline, flat-field, floor, flow-error or workers."""
+    """One measurement: ``kind`` is pipeline, flat-field, floor, flow-error, workers or motion."""
 
     group: str
     label: str
@@ -70,6 +84,7 @@ class Point:
     preset: str | None = None
     overrides: dict = field(default_factory=dict)
     flow_error_px: float = 0.0
+    seeds: int = 1  # a motion point scores this many bursts, seeds burst.seed, burst.seed + 1, ...
 
 
 def plan(quick: bool, groups: tuple[str, ...] = ()) -> list[Point]:
@@ -97,6 +112,8 @@ def _all_points(quick: bool) -> list[Point]:
         points += [Point("flow_error", f"{e} px", base, kind="flow-error", flow_error_px=e) for e in (0.0, 0.8)]
         points += [Point("workers", "solver 1 vs 2 workers", base, kind="workers")]
         points += [Point("motion_model", "wobble 1 px, auto", dataclasses.replace(base, wobble_px=1.0))]
+        points += [Point("motion_accuracy", "shake, 10 % object", dataclasses.replace(
+            base, scene="procedural", n_frames=6, seed=3, moving_object=0.1), kind="motion", seeds=MOTION_SEEDS)]
         return points
     points += [Point("block_size", f"paper, {b}x{b}", base, preset="paper", overrides={"solver.block_size": b})
                for b in (1, 3, 9, 17, 33)]
@@ -117,6 +134,11 @@ def _all_points(quick: bool) -> list[Point]:
     near = dataclasses.replace(base, parallax=1.0)  # a nearer plane: the layers model against one warp
     points += [Point("motion_model", f"parallax 1.0, {model}", near, overrides={"motion.model": model})
                for model in ("auto", "homography")]
+    for motion in MOTIONS:  # issue 4's target, on the smoother scene (fewer corners, more pull from the FPN)
+        for mover in (0.0, 0.1):
+            burst = dataclasses.replace(base, scene="procedural", n_frames=6, seed=3, motion=motion, moving_object=mover)
+            points.append(Point("motion_accuracy", motion + (", 10 % object" if mover else ""), burst, kind="motion",
+                                seeds=MOTION_SEEDS))
     jittered = dataclasses.replace(base, exposure_jitter=0.03)  # auto-exposure / flicker: measured and divided out
     points += [Point("exposure", f"3 % exposure jitter, {mode}", jittered, overrides={"input.exposure": mode})
                for mode in ("per-frame", "fixed")]
@@ -180,17 +202,22 @@ def _sensor(spec: BurstSpec):
 
 
 def _make_burst(spec: BurstSpec, folder: Path) -> None:
-    from .simulate import Shake, simulate_burst
     from .truth import save_burst
 
     sensor = _sensor(spec)
-    shake = Shake(wobble_px=spec.wobble_px, distortion_px=spec.distortion_px)
-    burst = simulate_burst(shape=spec.shape, n_frames=spec.n_frames, seed=spec.seed, scene=spec.scene,
-                           sensor=sensor, supersample=spec.supersample, shake=shake,
-                           moving_object=0.1 if spec.parallax else 0.0, parallax=spec.parallax,
-                           exposure_jitter=spec.exposure_jitter)
+    burst = _simulate(spec, spec.seed)
     parameters = {**dataclasses.asdict(spec), "sensor_preset": spec.sensor, "sensor": dataclasses.asdict(sensor)}
     save_burst(burst, folder, fmt="dng" if sensor.cfa else "exr", parameters=parameters)
+
+
+def _simulate(spec: BurstSpec, seed: int):
+    from .simulate import Shake, simulate_burst
+
+    shake = Shake(wobble_px=spec.wobble_px, distortion_px=spec.distortion_px, **MOTIONS[spec.motion])
+    return simulate_burst(shape=spec.shape, n_frames=spec.n_frames, seed=seed, scene=spec.scene,
+                          sensor=_sensor(spec), supersample=spec.supersample, shake=shake,
+                          moving_object=spec.moving_object or (0.1 if spec.parallax else 0.0),
+                          parallax=spec.parallax, exposure_jitter=spec.exposure_jitter)
 
 
 class _TreePeak:
@@ -272,6 +299,8 @@ def _measure(point: Point, scratch: Path) -> dict:
             row.update(_flow_error(point, folder, truth), flow_error_px=point.flow_error_px)
         elif point.kind == "workers":
             row.update(_workers(folder))
+        elif point.kind == "motion":
+            row.update(_motion_accuracy(point.burst, point.seeds))
     row["peak_rss_mb"] = memory.mb
     return row
 
@@ -343,6 +372,40 @@ def _flow_error(point: Point, folder: Path, truth) -> dict:
     row = _scores(result.k, folder, truth)
     row["timings"] = {"solve_s": time.perf_counter() - t0}
     return row
+
+
+def _motion_accuracy(spec: BurstSpec, seeds: int) -> dict:
+    """The first motion estimate (the default preset's) of ``seeds`` bursts like ``spec``: each
+    burst's worst frame, RMS trajectory error (px) over the pixels of the background."""
+    from .motion import estimate_motion
+
+    worst, seconds = [], 0.0
+    for seed in range(spec.seed, spec.seed + seeds):
+        burst = _simulate(spec, seed)
+        frames = burst.frames.astype(np.float32) - burst.sensor.black_level
+        t0 = time.perf_counter()
+        motion = estimate_motion(frames)
+        seconds += time.perf_counter() - t0
+        worst.append(max(background_rms(motion.homographies[t], burst, t) for t in range(1, len(frames))))
+    return {"motion_worst_px": worst, "motion_over_target": int(np.sum(np.array(worst) > MOTION_TARGET_PX)),
+            "timings": {"motion_s": seconds / seeds}}
+
+
+def background_rms(H: np.ndarray, burst, t: int) -> float:
+    """RMS distance (px) between where ``H`` and the truth put the reference's pixels in frame ``t``, over
+    those that see the background there (not the moving object in either frame, and inside frame t)."""
+    from .trajectory import apply_homography
+
+    h, w = burst.frames.shape[1:]
+    ys, xs = np.mgrid[0:h, 0:w]
+    points = np.stack([xs.ravel(), ys.ravel()], axis=1).astype(np.float64)
+    true = apply_homography(burst.homographies[t], points)
+    keep = (true[:, 0] >= 0) & (true[:, 0] <= w - 1) & (true[:, 1] >= 0) & (true[:, 1] <= h - 1)
+    if burst.moving is not None:
+        col, row = np.clip(np.round(true).astype(int), 0, [w - 1, h - 1]).T
+        keep &= ~burst.moving[0].ravel() & ~burst.moving[t][row, col]
+    error = apply_homography(H, points[keep]) - true[keep]
+    return float(np.sqrt(np.mean(np.sum(error**2, axis=1))))
 
 
 def _workers(folder: Path) -> dict:
@@ -440,7 +503,7 @@ def markdown(summary: dict) -> str:
              "| group | point | burst | residual FPN % (bound) | MSE before | MSE after | ratio | time s "
              "(read / motion / solve / write) | peak RSS MB |",
              "|---|---|---|---|---|---|---|---|---|"]
-    for r in summary["points"]:
+    for r in (r for r in summary["points"] if r["kind"] != "motion"):
         b = r["burst"]
         burst = f"{b['shape'][1]}x{b['shape'][0]}x{b['n_frames']}"
         t = r.get("timings", {})
@@ -455,6 +518,17 @@ def markdown(summary: dict) -> str:
         lines.append(f"| {r['group']} | {r['label']} | {burst} | {fmt('residual_fpn_percent', '.2f')}{bound} | "
                      f"{fmt('mse_before', '.2f')} | {fmt('mse_after', '.2f')} | {fmt('mse_ratio', '.1f')} | "
                      f"{time_text} | {r['peak_rss_mb']:.0f} |")
+    motion = [r for r in summary["points"] if r["kind"] == "motion"]
+    if motion:
+        lines += ["", f"Motion accuracy (first estimate, as the default preset's): each burst's worst frame, RMS "
+                  f"trajectory error over the background, px; target {MOTION_TARGET_PX} px.", "",
+                  "| point | burst | scene | bursts (seeds) | median | max | over target | motion s per burst |",
+                  "|---|---|---|---|---|---|---|---|"]
+        for r in motion:
+            b, worst = r["burst"], np.array(r["motion_worst_px"])
+            lines.append(f"| {r['label']} | {b['shape'][1]}x{b['shape'][0]}x{b['n_frames']} | {b['scene']} | "
+                         f"{len(worst)} ({b['seed']}-{b['seed'] + len(worst) - 1}) | {np.median(worst):.3f} | "
+                         f"{worst.max():.3f} | {r['motion_over_target']} | {r['timings']['motion_s']:.2f} |")
     exponents = {r.get("fitted_time_exponent") for r in summary["points"]} - {None}
     if exponents:
         lines += ["", f"Time grows as (pixels x frames)^{exponents.pop():.2f} (balanced preset, least squares in log-log)."]

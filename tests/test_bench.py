@@ -13,22 +13,37 @@ def test_a_small_plan_runs_every_kind_of_point(tmp_path, monkeypatch):
     points = [Point("reference", "floor", base, kind="floor"),
               Point("reference", "flat field", base, kind="flat-field"),
               Point("preset", "fast", base, preset="fast"),
-              Point("flow_error", "0.8 px", base, kind="flow-error", flow_error_px=0.8)]
+              Point("flow_error", "0.8 px", base, kind="flow-error", flow_error_px=0.8),
+              Point("motion_accuracy", "motion", BurstSpec(shape=(120, 160), n_frames=4, scene="procedural",
+                                                           motion="25 px drift"), kind="motion", seeds=2)]
     monkeypatch.setattr(bench, "plan", lambda quick, groups=(): points)
     rows = {r["label"]: r for r in bench.run(tmp_path, quick=True)}
-    floor, flat, fast, flow = rows["floor"], rows["flat field"], rows["fast"], rows["0.8 px"]
+    floor, flat, fast, flow, motion = (rows[k] for k in ("floor", "flat field", "fast", "0.8 px", "motion"))
     assert floor["residual_fpn_percent"] == pytest.approx(0.0, abs=1e-3)  # the true gains
     # 6 flat frames of ~95 DN: each pixel mean has ~0.5 % temporal noise
     assert flat["residual_fpn_percent"] < 1.0 < flat["input_fpn_percent"]
     assert floor["mse_after"] <= fast["mse_after"] < fast["mse_before"]
     assert set(fast["timings"]) >= {"read_s", "motion_s", "solve_s", "write_s", "total_s"}
     assert flow["flow_error_px"] == 0.8 and flow["mse_ratio"] > 0
+    assert len(motion["motion_worst_px"]) == 2 and max(motion["motion_worst_px"]) < 0.5  # sub-pixel on 2 seeds
     assert all(r["peak_rss_mb"] > 10 for r in rows.values())
     summary = json.loads((tmp_path / "results.json").read_text())
-    assert summary["machine"]["cpus"] >= 1 and len(summary["points"]) == 4
+    assert summary["machine"]["cpus"] >= 1 and len(summary["points"]) == 5
     table = (tmp_path / "results.md").read_text()
     assert all(f"| {label} |" in table for label in rows)
     assert not (tmp_path / "scratch").exists()  # the bursts are cleaned up
+
+
+def test_background_rms_is_the_trajectory_error_off_the_moving_object():
+    import numpy as np
+
+    from gainfpn_cli.simulate import simulate_burst
+
+    burst = simulate_burst(shape=(60, 80), n_frames=2, seed=3, moving_object=0.1)
+    H = burst.homographies[1]
+    assert bench.background_rms(H, burst, 1) == 0.0
+    shifted = np.array([[1.0, 0.0, 0.3], [0.0, 1.0, 0.4], [0.0, 0.0, 1.0]]) @ H  # 0.5 px off everywhere
+    assert bench.background_rms(shifted, burst, 1) == pytest.approx(0.5)
 
 
 @pytest.mark.slow
