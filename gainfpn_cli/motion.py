@@ -347,8 +347,9 @@ def estimate_motion(
     Corners of the reference are tracked into each frame (pyramidal
     Lucas-Kanade: shakes of tens of pixels work); the global models and the
     field models (:mod:`fieldfit`) are fitted to them, and scene layers
-    (:mod:`layers`) split off the points the best global model leaves. With
-    ``model="auto"`` the burst gets the model with the lowest :func:`gric`
+    (:mod:`layers`) split off the points the best global model leaves; where
+    there are any, every frame's models are fitted again without their
+    points, whatever the model. With ``model="auto"`` the burst gets the model with the lowest :func:`gric`
     summed over frames -- the simplest the data support. No corner is taken
     where the bool ``(H, W)`` mask ``ignore`` is set (pixels known to move).
     Frame ``t`` is compared at the reference's brightness: divided by
