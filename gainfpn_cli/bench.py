@@ -204,13 +204,14 @@ def _sensor(spec: BurstSpec):
 def _make_burst(spec: BurstSpec, folder: Path) -> None:
     from .truth import save_burst
 
-    sensor = _sensor(spec)
     burst = _simulate(spec, spec.seed)
+    sensor = burst.sensor
     parameters = {**dataclasses.asdict(spec), "sensor_preset": spec.sensor, "sensor": dataclasses.asdict(sensor)}
     save_burst(burst, folder, fmt="dng" if sensor.cfa else "exr", parameters=parameters)
 
 
 def _simulate(spec: BurstSpec, seed: int):
+    """The burst ``spec`` describes, drawn with ``seed`` (a motion point draws several)."""
     from .simulate import Shake, simulate_burst
 
     shake = Shake(wobble_px=spec.wobble_px, distortion_px=spec.distortion_px, **MOTIONS[spec.motion])
