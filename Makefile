@@ -27,14 +27,10 @@ demo: $(STAMP)  ## estimate a gain map from sample_data/exr_burst and score it a
 	@echo
 	@echo "Outputs in demo_out/: gain_map.exr (k and confidence), corrected/, report.json, config.used.yaml, preview.png"
 
-$(VENV)/.bench-stamp: $(STAMP)
-	$(BIN)/python -m pip install --quiet -e '.[test,bench]'
-	touch $@
-
-bench: $(VENV)/.bench-stamp  ## the full speed/accuracy benchmark into bench_out/ (long: see README)
+bench: $(STAMP)  ## the full speed/accuracy benchmark into bench_out/ (long: see README)
 	$(BIN)/gainfpn bench -o bench_out --overwrite
 
-bench-quick: $(VENV)/.bench-stamp  ## the one-minute benchmark (CI smoke) into bench_quick/
+bench-quick: $(STAMP)  ## the one-minute benchmark (CI smoke) into bench_quick/
 	$(BIN)/gainfpn bench --quick -o bench_quick --overwrite
 
 sample-data: $(STAMP)  ## regenerate sample_data/ (deterministic)

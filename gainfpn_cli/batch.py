@@ -3,9 +3,10 @@
 The bursts run one after another in this process, or as tasks of a Dask
 cluster (``dask.distributed``, the optional ``dask`` extra), several at a
 time. Each burst's folder is written exactly as ``gainfpn estimate`` writes
-it, all or nothing (:func:`io.staged_directory`), so a worker lost mid-burst
+it, all or nothing (:func:`outdir.staged`), so a worker lost mid-burst
 leaves no half-written results: Dask runs the burst again elsewhere, and a
-re-run of the batch skips every burst whose folder is complete. A burst
+re-run of the batch skips every burst whose stored result was made from the
+same input files with the same effective config (:func:`stored_report`). A burst
 that fails (bad input, no motion, ...) is reported in the summary and does
 not stop the others.
 """
@@ -24,13 +25,24 @@ from pathlib import Path
 from typing import Callable
 
 from .errors import ConfigError, GainFPNError, InputError
-from .io import remove_staging
+from .outdir import remove_staging
 
-#: Columns of summary.csv (summary.json holds the same rows).
-COLUMNS = ("name", "status", "frames", "motion_model", "fpn_models", "input_fpn_pixel_percent",
-           "predicted_residual_fpn_percent", "holdout_ratio", "exposure_spread_percent", "time_s", "message")
+#: Columns of summary.csv (summary.json holds the same rows) and the decimals each number is rounded to.
+COLUMNS = {"name": None, "status": None, "earlier": None, "frames": None, "motion_model": None, "fpn_models": None,
+           "prnu_percent": 3, "prnu_pixel_percent": 3, "prnu_column_percent": 3, "prnu_row_percent": 3,
+           "predicted_residual_percent": 3, "holdout_ratio": 4, "exposure_spread_percent": 3, "time_s": 2,
+           "message": None}
+SUMMARY_FILES = ("summary.csv", "summary.json")
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
 INSTALL_HINT = "batch on a cluster needs Dask: pip install 'gainfpn[dask]' (dask[distributed])"
+
+
+@dataclass(frozen=True)
+class Defaults:
+    """What applies to every burst of a batch under its own config: ``--preset`` and ``-c``."""
+
+    config: Path | None = None
+    preset: str | None = None
 
 
 @dataclass(frozen=True)
@@ -89,92 +101,171 @@ def load_manifest(path: str | os.PathLike) -> list[Job]:
     return jobs
 
 
-def run_burst(job: Job, out: str | os.PathLike, *, solver_workers: int | None = None) -> dict:
+def job_config(job: Job, defaults: Defaults = Defaults(), *, solver_workers: int | None = None):
+    """The burst's effective config: defaults < ``--preset`` < ``-c`` < the burst's own config."""
+    from .config import load_config, parse_config
+
+    cfg = load_config(defaults.config, preset=defaults.preset)
+    if job.config is not None:
+        try:
+            text = Path(job.config).read_text(encoding="utf-8")
+        except OSError as exc:
+            raise ConfigError(f"{job.config}: cannot read config: {exc.strerror or exc}") from None
+        cfg = parse_config(text, source=str(job.config), base=cfg)
+    if solver_workers is not None:
+        cfg = _with_workers(cfg, solver_workers)
+    return cfg
+
+
+def _with_workers(cfg, workers: int):
+    import dataclasses
+
+    return dataclasses.replace(cfg, solver=dataclasses.replace(cfg.solver, workers=workers))
+
+
+def stored_report(folder: Path, job: Job, cfg) -> dict | None:
+    """The report of ``folder``'s result if it was made from the job's inputs as they are now (paths,
+    sizes, modification times) with the effective config ``cfg``; else None (run it again)."""
+    from .config import config_dict
+    from .io import FileStamp, find_frames, stamp
+
+    try:
+        report = json.loads((folder / "report.json").read_text(encoding="utf-8"))
+        recorded = [FileStamp(**i) for i in report["inputs"]]
+        dark = None if report["dark"] is None else FileStamp(**report["dark"])
+        now = [stamp(p, digest=False) for p in find_frames(job.inputs)]
+    except (OSError, ValueError, KeyError, TypeError, GainFPNError):
+        return None
+    if len(now) != len(recorded) or not all(a.same_file(b) for a, b in zip(now, recorded)):
+        return None
+    if (dark is None) != (cfg.input.dark is None):
+        return None
+    if dark is not None and not stamp(cfg.input.dark, digest=False).same_file(dark):
+        return None
+    return report if report.get("config") == config_dict(cfg) else None
+
+
+def run_burst(job: Job, out: str | os.PathLike, *, defaults: Defaults = Defaults(), overwrite: bool = False,
+              solver_workers: int | None = None) -> dict:
     """Estimate one burst into ``out/<name>`` and return its summary row.
 
-    A burst already done (its folder complete) is not run again. Errors of
-    the burst itself (input, config, estimation) make a ``failed`` row; only
-    an interrupt or a bug raises.
+    A burst whose stored result is still its inputs' and config's (:func:`stored_report`) is not
+    run again unless ``overwrite``. Errors of the burst itself (input, config, estimation) make a
+    ``failed`` row; only an interrupt or a bug raises.
     """
-    from .config import load_config
     from .pipeline import estimate, load_burst, write_estimate
 
     folder = Path(out) / job.name
-    if (folder / "report.json").is_file():  # the folder is renamed into place only when complete
-        report = json.loads((folder / "report.json").read_text(encoding="utf-8"))
-        return {**_row(job.name, report, sum(report["timings"].values())), "status": "done earlier"}
     t0 = time.perf_counter()
     try:
-        cfg = load_config(job.config, overrides={"solver.workers": solver_workers})
+        cfg = job_config(job, defaults, solver_workers=solver_workers)
+        report = None if overwrite else stored_report(folder, job, cfg)
+        if report is not None:
+            return {**_row(job.name, report, report["timings"]["total_s"]), "earlier": True}
         burst = load_burst(job.inputs, cfg)  # as `estimate` reads its INPUTS
         result = estimate(burst, cfg)
-        write_estimate(result, burst, cfg, folder, overwrite=True)
+        write_estimate(result, burst, cfg, folder, overwrite=True)  # the batch's own folder
     except GainFPNError as exc:
         return {**_failed(job.name, str(exc)), "time_s": round(time.perf_counter() - t0, 2)}
     return _row(job.name, result.report, time.perf_counter() - t0)
 
 
 def _failed(name: str, message: str) -> dict:
-    return {**dict.fromkeys(COLUMNS), "name": name, "status": "failed", "message": message}
+    return {**dict.fromkeys(COLUMNS), "name": name, "status": "failed", "earlier": False, "message": message}
 
 
 def _row(name: str, report: dict, seconds: float) -> dict:
-    from .pipeline import exposure_spread_percent
+    from .summary import exposure_spread_percent, fpn_models
 
-    planes = report["planes"].values()
-    pixel = [p["input_fpn_percent"]["pixel"] for p in planes if "input_fpn_percent" in p]
-    holdout = report.get("holdout") or {}
-    return {
+    prnu = report["prnu_percent"]
+    row = {
         "name": name,
-        "status": "done" if not report["warnings"] else "done, with warnings",
+        "status": "rejected" if report["status"] == "rejected" else "done",
+        "earlier": False,
         "frames": len(report["inputs"]),
         "motion_model": report["motion"]["model"],
-        "fpn_models": "/".join(sorted({p.get("fpn_model", p["method"]) for p in planes})),
-        "input_fpn_pixel_percent": round(sum(pixel) / len(pixel), 3) if pixel else None,
-        "predicted_residual_fpn_percent": report["predicted_residual_fpn_percent"],
-        "holdout_ratio": holdout.get("residual_ratio"),
-        "exposure_spread_percent": round(exposure_spread_percent(report), 3),  # divided out (0: one exposure)
-        "time_s": round(seconds, 2),
+        "fpn_models": fpn_models(report),
+        "prnu_percent": prnu["total"],
+        "prnu_pixel_percent": prnu["pixel"],
+        "prnu_column_percent": prnu["column"],
+        "prnu_row_percent": prnu["row"],
+        "predicted_residual_percent": report["predicted_residual_percent"],
+        "holdout_ratio": (report.get("holdout") or {}).get("residual_ratio"),
+        "exposure_spread_percent": exposure_spread_percent(report),  # divided out (0: one exposure)
+        "time_s": seconds,
         "message": "; ".join(report["warnings"]),
     }
+    return {key: value if COLUMNS[key] is None or value is None else round(float(value), COLUMNS[key])
+            for key, value in row.items()}
 
 
-def run_batch(jobs: list[Job], out: str | os.PathLike, *, client=None, solver_workers: int | None = None,
-              progress: Callable[[dict], None] | None = None) -> list[dict]:
+def batch_plan(jobs: list[Job], out: Path, *, overwrite: bool = False, manifest: Path | None = None,
+               defaults: Defaults = Defaults()):
+    """Check ``out`` before any work (:func:`outdir.prepare`): it must not hold any burst's inputs or
+    configs, and a burst's folder there that an earlier batch did not write needs ``overwrite``."""
+    from .io import find_frames
+    from .outdir import prepare, read_manifest
+
+    inputs = [p for p in (manifest, defaults.config) if p is not None]
+    for job in jobs:
+        inputs += [job.config] if job.config is not None else []
+        try:
+            inputs += find_frames(job.inputs)
+        except GainFPNError:  # reported as that burst's failure
+            pass
+    names = [job.name for job in jobs] + list(SUMMARY_FILES)
+    ours = read_manifest(out) if out.is_dir() else {}
+    foreign = [n for n in names if (out / n).exists() and ours.get(n) != "batch"]
+    if foreign and not overwrite:
+        raise InputError(f"{out / foreign[0]}: was not written by gainfpn batch; pass --overwrite to replace it")
+    return prepare(out, command="batch", names=names, inputs=inputs, overwrite=True)
+
+
+def run_batch(jobs: list[Job], out: str | os.PathLike, *, client=None, defaults: Defaults = Defaults(),
+              overwrite: bool = False, manifest: Path | None = None, solver_workers: int | None = None,
+              progress: Callable[[dict], None] | None = None):
     """Every job into ``out/<name>``; ``client`` a Dask client to run them on (else here, in turn).
 
-    Returns the summary rows in manifest order and writes them to
-    ``out/summary.json`` and ``out/summary.csv``. ``progress(row)`` is called
-    as each burst ends.
+    Returns the summary rows in manifest order (and writes them to ``out/summary.json`` and
+    ``out/summary.csv``) and the output plan. ``progress(row)`` is called as each burst ends.
     """
+    from .outdir import record
+
     out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise InputError(f"{out}: exists and is not a directory")
+    plan = batch_plan(jobs, out, overwrite=overwrite, manifest=manifest, defaults=defaults)
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise InputError(f"{out}: cannot create ({exc.strerror or exc})") from None
+
+    def done(job: Job, row: dict) -> None:
+        if (out / job.name).is_dir():
+            record(out, [job.name], "batch")
+        if progress:
+            progress(row)
+
+    options = {"defaults": defaults, "overwrite": overwrite}
     if client is None:
         rows = []
         for job in jobs:
             try:
-                rows.append(run_burst(job, out, solver_workers=solver_workers))
+                rows.append(run_burst(job, out, solver_workers=solver_workers, **options))
             except Exception as exc:  # noqa: BLE001 -- a bug in one burst: report it, keep the others
                 rows.append(_failed(job.name, f"{type(exc).__name__}: {exc}"))
-            if progress:
-                progress(rows[-1])
+            done(job, rows[-1])
     else:
-        rows = _on_cluster(client, jobs, out, progress)
+        rows = _on_cluster(client, jobs, out, done, options)
     for job in jobs:  # a worker killed while writing leaves its staging folder behind
         remove_staging(out / job.name)
     write_summary(rows, out)
-    return rows
+    record(out, SUMMARY_FILES, "batch")
+    return rows, plan
 
 
-def _on_cluster(client, jobs: list[Job], out: Path, progress) -> list[dict]:
+def _on_cluster(client, jobs: list[Job], out: Path, done, options: dict) -> list[dict]:
     """Each burst a Dask task (its solver on one process: a Dask worker is the unit of parallelism)."""
     # keywords through partial: Client.map's own `workers=` would restrict the tasks to a worker so named
-    task = functools.partial(run_burst, out=str(out.absolute()), solver_workers=1)
+    task = functools.partial(run_burst, out=str(out.absolute()), solver_workers=1, **options)
     futures = client.map(task, jobs, pure=False)
     rows = []
     try:
@@ -183,8 +274,7 @@ def _on_cluster(client, jobs: list[Job], out: Path, progress) -> list[dict]:
                 rows.append(future.result())
             except Exception as exc:  # noqa: BLE001 -- a bug or a lost task: report it, keep the others
                 rows.append(_failed(job.name, f"{type(exc).__name__}: {exc}"))
-            if progress:
-                progress(rows[-1])
+            done(job, rows[-1])
     except BaseException:
         client.cancel(futures)
         raise
@@ -197,7 +287,7 @@ def write_summary(rows: list[dict], out: Path) -> None:
 
     write_text(out / "summary.json", json.dumps(rows, indent=1))
     text = _io.StringIO()
-    writer = csv.DictWriter(text, fieldnames=COLUMNS, lineterminator="\n")
+    writer = csv.DictWriter(text, fieldnames=list(COLUMNS), lineterminator="\n")
     writer.writeheader()
     writer.writerows({k: row.get(k) for k in COLUMNS} for row in rows)
     write_text(out / "summary.csv", text.getvalue())

@@ -168,6 +168,10 @@ def _all_points(quick: bool) -> list[Point]:
 # running
 
 
+#: What ``run`` writes into its folder (``--overwrite`` replaces these names only).
+OUTPUTS = ("results.json", "results.md", "pareto.png", "scaling.png", "flow_error.png")
+
+
 def run(out_dir: Path, *, quick: bool, groups: tuple[str, ...] = (), progress=None) -> list[dict]:
     """Run every point of :func:`plan`; write results.json, results.md and plots into ``out_dir``."""
     out_dir = Path(out_dir)
@@ -537,14 +541,12 @@ def markdown(summary: dict) -> str:
 
 
 def plot(summary: dict, out_dir: Path) -> list[Path]:
-    """pareto.png, scaling.png and flow_error.png; none without matplotlib (``pip install gainfpn[bench]``)."""
-    try:
-        import matplotlib
+    """pareto.png, scaling.png and flow_error.png (those whose points were measured)."""
+    import matplotlib
 
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        return []
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
     rows = summary["points"]
     written = []
     timed = [r for r in rows if r["kind"] == "pipeline" and r["group"] not in ("scaling_pixels", "scaling_frames")]

@@ -314,9 +314,14 @@ def load_config(
     return _merge(cfg, nested, source="command line") if nested else cfg
 
 
+def config_dict(cfg: Config) -> dict:
+    """The config as plain nested dicts and lists (for JSON and YAML)."""
+    return _plain(dataclasses.asdict(cfg))
+
+
 def dump_config(cfg: Config) -> str:
     """YAML text that :func:`parse_config` reads back to an equal object."""
-    return yaml.safe_dump(_plain(dataclasses.asdict(cfg)), sort_keys=False)
+    return yaml.safe_dump(config_dict(cfg), sort_keys=False)
 
 
 def _plain(value: Any) -> Any:

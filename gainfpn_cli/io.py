@@ -12,9 +12,10 @@ already subtracted (RAW) together with a :class:`FrameInfo` header.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import glob
+import hashlib
 import os
-import shutil
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,6 +32,8 @@ RAW_SUFFIXES = frozenset(
     ".dng .cr2 .cr3 .crw .nef .nrw .arw .srf .sr2 .orf .rw2 .raf .pef .srw "
     ".3fr .iiq .erf .mos .mrw .kdc .dcr .x3f .rwl .raw".split()
 )
+
+FRAME_SUFFIXES = EXR_SUFFIXES | RAW_SUFFIXES
 
 #: EXR header attributes written by gainfpn (and read back from its own files).
 ATTR_CFA = "gainfpn:cfa"
@@ -89,6 +92,44 @@ class Frame:
     info: FrameInfo
 
 
+@dataclass(frozen=True)
+class FileStamp:
+    """Which file an input was: absolute path, size, modification time and content digest.
+
+    ``batch`` compares path, size and time to tell whether a stored result is still the
+    inputs'; ``evaluate`` compares the digest with the simulation's frames.
+    """
+
+    path: str
+    size_bytes: int
+    mtime_ns: int
+    sha256: str
+
+    def to_json(self) -> dict:
+        return dataclasses.asdict(self)
+
+    def same_file(self, other: "FileStamp") -> bool:
+        """Same path, size and modification time (the digest is not read)."""
+        return (self.path, self.size_bytes, self.mtime_ns) == (other.path, other.size_bytes, other.mtime_ns)
+
+
+def stamp(path: str | os.PathLike, *, digest: bool = True) -> FileStamp:
+    """The :class:`FileStamp` of ``path`` (``sha256`` empty without ``digest``: 1.5 GB/s measured)."""
+    path = Path(path).absolute()
+    try:
+        st = path.stat()
+        sha = ""
+        if digest:
+            h = hashlib.sha256()
+            with open(path, "rb") as f:
+                for block in iter(lambda: f.read(1 << 20), b""):
+                    h.update(block)
+            sha = h.hexdigest()
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    return FileStamp(str(path), st.st_size, st.st_mtime_ns, sha)
+
+
 # ---------------------------------------------------------------------------
 # finding inputs
 
@@ -101,8 +142,9 @@ def kind_of(path: Path) -> str:
 def find_frames(specs: Sequence[str | os.PathLike]) -> list[Path]:
     """Expand files, directories and glob patterns into a sorted list of frames.
 
-    A directory contributes its EXR and RAW files (by extension, not
-    recursively). Frames are sorted by name; duplicates are dropped.
+    A directory or a glob pattern contributes its EXR and RAW files (by
+    extension, not recursively; other files are skipped); a file named
+    explicitly is read whatever its extension. Frames are sorted by name; duplicates are dropped.
     """
     if not specs:
         raise InputError("no input frames given")
@@ -111,7 +153,7 @@ def find_frames(specs: Sequence[str | os.PathLike]) -> list[Path]:
         text = os.fspath(spec)
         path = Path(text)
         if path.is_dir():
-            members = [p for p in path.iterdir() if p.is_file() and p.suffix.lower() in EXR_SUFFIXES | RAW_SUFFIXES]
+            members = [p for p in path.iterdir() if p.is_file() and p.suffix.lower() in FRAME_SUFFIXES]
             if not members:
                 raise InputError(f"{path}: directory holds no EXR or RAW frames")
             found.update(members)
@@ -119,14 +161,22 @@ def find_frames(specs: Sequence[str | os.PathLike]) -> list[Path]:
             if not path.is_file():
                 raise InputError(f"{path}: not a regular file")
             found.add(path)
-        elif glob.has_magic(text):
+        elif glob.has_magic(text):  # as a directory: frames by extension, other files skipped
             matches = [Path(m) for m in glob.glob(text) if Path(m).is_file()]
             if not matches:
                 raise InputError(f"{text}: pattern matches no file")
-            found.update(matches)
+            frames = [p for p in matches if p.suffix.lower() in FRAME_SUFFIXES]
+            if not frames:
+                raise InputError(f"{text}: pattern matches no EXR or RAW frame (only {_some(matches)})")
+            found.update(frames)
         else:
             raise InputError(f"{path}: no such file or directory")
     return sorted(found, key=lambda p: (p.name, str(p)))
+
+
+def _some(paths: Sequence[Path]) -> str:
+    names = sorted(p.name for p in paths)
+    return ", ".join(names[:3]) + (f" and {len(names) - 3} more" if len(names) > 3 else "")
 
 
 # ---------------------------------------------------------------------------
@@ -319,6 +369,8 @@ def check_consistent(infos: Sequence[FrameInfo]) -> None:
 
 
 def _fmt(value) -> str:
+    if value is None:
+        return "not stated"
     if isinstance(value, tuple) and len(value) == 2 and all(isinstance(v, int) for v in value):
         return f"{value[1]}x{value[0]}"
     if isinstance(value, tuple):
@@ -365,59 +417,6 @@ def atomic_output(path: str | os.PathLike) -> Iterator[Path]:
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
-
-
-def check_out_dir(out_dir: Path, overwrite: bool) -> None:
-    """Refuse an existing, non-empty ``out_dir`` unless ``overwrite`` (checked before any work)."""
-    out_dir = Path(out_dir)
-    if out_dir.exists() and not out_dir.is_dir():
-        raise InputError(f"{out_dir}: exists and is not a directory")
-    if out_dir.is_dir() and any(out_dir.iterdir()) and not overwrite:
-        raise InputError(f"{out_dir}: directory is not empty (pass --overwrite to replace its results)")
-    parent = out_dir.absolute().parent  # created when the results are written, as mkdir -p would
-    existing = next(p for p in (parent, *parent.parents) if p.exists())
-    if not existing.is_dir():
-        raise InputError(f"{existing}: is not a directory, so {out_dir} cannot be made")
-
-
-@contextlib.contextmanager
-def staged_directory(out_dir: str | os.PathLike) -> Iterator[Path]:
-    """Yield a temporary sibling of ``out_dir``; on success it replaces ``out_dir``.
-
-    On any exception (KeyboardInterrupt included) the staging directory is
-    removed and ``out_dir`` is left as it was: results are all or nothing,
-    and never mixed with an earlier run's.
-    """
-    out_dir = Path(out_dir)
-    tmp = _staging(out_dir, str(os.getpid()))
-    shutil.rmtree(tmp, ignore_errors=True)
-    try:
-        tmp.parent.mkdir(parents=True, exist_ok=True)
-        tmp.mkdir()
-    except OSError as exc:
-        raise InputError(f"{out_dir}: cannot write here ({exc.strerror or exc})") from None
-    try:
-        yield tmp
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    old = out_dir.parent / f".{out_dir.name}.old-{os.getpid()}"
-    if out_dir.exists():
-        os.replace(out_dir, old)
-    os.replace(tmp, out_dir)
-    shutil.rmtree(old, ignore_errors=True)
-
-
-def _staging(out_dir: Path, pid: str) -> Path:
-    return out_dir.parent / f".{out_dir.name}.tmp-{pid}"
-
-
-def remove_staging(out_dir: str | os.PathLike) -> None:
-    """Remove the staging folders of ``out_dir`` that processes killed mid-write left behind
-    (:func:`staged_directory` removes its own on any exception it sees)."""
-    out_dir = Path(out_dir)
-    for stale in out_dir.parent.glob(_staging(out_dir, "*").name):
-        shutil.rmtree(stale, ignore_errors=True)
 
 
 def write_text(path: str | os.PathLike, text: str) -> None:

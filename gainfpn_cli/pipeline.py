@@ -24,11 +24,12 @@ from . import __version__
 from .accurate import AccurateOptions, power_of_two_scale, sigma_from_confidence, solve_accurate
 from .bayer import OFFSETS, green_lattice, grey_proxy, plane_to_mosaic
 from .blocks import GainResult, solve_paper
-from .config import Config, dump_config
+from .config import Config, config_dict, dump_config
 from .errors import EstimationError, InputError, TrackingError
 from .fpnmodel import select_model
-from .io import (ATTR_CFA, ATTR_SATURATION, atomic_output, check_consistent, check_out_dir, find_frames,
-                 read_exr_planes, read_frame, staged_directory, write_exr, write_text)
+from .io import (ATTR_CFA, ATTR_SATURATION, FileStamp, atomic_output, check_consistent, find_frames,
+                 read_exr_planes, read_frame, stamp, write_exr, write_text)
+from .outdir import OutputPlan, prepare, staged
 from .metrics import mse, residual_fpn_percent
 from .exposure import relative_exposures, rough_exposures, significant
 from .motion import estimate_motion, moving_masks
@@ -67,6 +68,10 @@ class LoadedBurst:
     channels: tuple[str, ...]
     saturation: float | None
     reference: int
+    stamps: tuple[FileStamp, ...] = ()  # each frame file's path, size, time and digest
+    dark: FileStamp | None = None  # the master dark frame subtracted, if any
+    read_s: float = 0.0  # time taken to read the frames
+    white: float | None = None  # the files' white level in DN (black level included), when they state one
 
 
 @dataclass(frozen=True)
@@ -90,19 +95,22 @@ def load_burst(inputs, cfg: Config, *, progress: Progress | None = None) -> Load
     _check_frame_count(len(paths), InputError, f" ({paths[0] if paths else 'none'})")
     if cfg.input.reference >= len(paths):
         raise InputError(f"input.reference is {cfg.input.reference} but there are only {len(paths)} frames")
+    t0 = time.perf_counter()
     update = progress("read", len(paths)) if progress else None
-    infos = []
+    infos, stamps = [], []
     stack = None
     for i, path in enumerate(paths):  # into one preallocated stack: the frames are held once
         frame = read_frame(path)
         infos.append(frame.info)
         check_consistent(infos)
+        stamps.append(stamp(path))
         if stack is None:
             stack = np.empty((len(paths),) + frame.data.shape, np.float32)
         stack[i] = frame.data
         if update:
             update(1)
     info = infos[0]
+    dark_stamp = None
     if cfg.input.dark is not None:
         dark = read_frame(cfg.input.dark)
         if dark.data.shape != stack.shape[1:]:
@@ -110,8 +118,10 @@ def load_burst(inputs, cfg: Config, *, progress: Progress | None = None) -> Load
                              f"{dark.data.shape[2]} channel(s); the frames are {stack.shape[2]}x{stack.shape[1]} "
                              f"with {stack.shape[3]}")
         stack -= dark.data[None]
+        dark_stamp = stamp(cfg.input.dark)
     saturation = cfg.input.saturation if cfg.input.saturation is not None else info.saturation
-    return LoadedBurst(paths, stack, info.cfa, info.channels, saturation, cfg.input.reference)
+    return LoadedBurst(paths, stack, info.cfa, info.channels, saturation, cfg.input.reference, tuple(stamps),
+                       dark_stamp, time.perf_counter() - t0, info.layout()[4])
 
 
 @dataclass(frozen=True)
@@ -170,7 +180,17 @@ def _motion_images(frames: np.ndarray, cfa: str | None) -> tuple[np.ndarray, np.
 
 
 def estimate(burst: LoadedBurst, cfg: Config, *, progress: Progress | None = None) -> Estimate:
-    """Motion, solve and FPN model for every plane; the hold-out check; a report."""
+    """Motion, solve and FPN model for every plane; the hold-out check; a report.
+
+    BLAS and OpenMP run single-threaded meanwhile (:func:`parallel.single_threaded_math`),
+    whoever calls, so every caller gets the command's speed and bit-identical results."""
+    from .parallel import single_threaded_math
+
+    with single_threaded_math():
+        return _estimate(burst, cfg, progress)
+
+
+def _estimate(burst: LoadedBurst, cfg: Config, progress: Progress | None) -> Estimate:
     timings: dict[str, float] = {}
     warnings: list[str] = []
     order = [burst.reference] + [i for i in range(len(burst.paths)) if i != burst.reference]
@@ -228,15 +248,26 @@ def estimate(burst: LoadedBurst, cfg: Config, *, progress: Progress | None = Non
     if holdout:
         ratio = _holdout_ratio(burst, frames, excluded, exposures, in_frame, k, cfg.solver.method)
         holdout_report = {"frame": burst.paths[order[-1]].name, "residual_ratio": ratio, "passed": ratio < 1.0}
+        timings["holdout_s"] = time.perf_counter() - t0 - timings["solve_s"]
         if ratio >= 1.0:
             warnings.append(f"the estimate does not reduce the brightness-constancy residual on the held-out frame "
                             f"(ratio {ratio:.3f}); writing k = 1 (no correction)")
             k = np.ones_like(k)
             confidence = np.zeros_like(confidence)
     sigma = sigma_from_confidence(confidence)
+    # only the accurate solver's confidence is a calibrated standard error
+    calibrated = (confidence > 0).any() and all(p["method"] == "accurate" for p in plane_reports.values())
     report = {
         "version": __version__,
-        "inputs": [str(p) for p in burst.paths],
+        "status": status(holdout_report),
+        # the sensor's gain nonuniformity as estimated (EMVA 1288 parts), and what correction leaves
+        "prnu_percent": prnu_percent(plane_reports),
+        "predicted_residual_percent": float(100 * np.median(sigma[confidence > 0])) if calibrated else None,
+        "holdout": holdout_report,
+        "estimated_percent": float(100 * (confidence > 0).mean()),
+        "inputs": [s.to_json() for s in burst.stamps] or [str(p.absolute()) for p in burst.paths],
+        "dark": None if burst.dark is None else burst.dark.to_json(),
+        "white_level_dn": burst.white,
         "reference": burst.paths[burst.reference].name,
         "motion": {
             "model": motion.model,
@@ -254,16 +285,39 @@ def estimate(burst: LoadedBurst, cfg: Config, *, progress: Progress | None = Non
         # one where it differs from 1 significantly) is divided out
         "exposure": exposure_report,
         "planes": plane_reports,
-        "holdout": holdout_report,
-        # only the accurate solver's confidence is a calibrated standard error
-        "predicted_residual_fpn_percent": float(100 * np.median(sigma[confidence > 0]))
-        if (confidence > 0).any() and all(p["method"] == "accurate" for p in plane_reports.values()) else None,
-        "estimated_fraction": float((confidence > 0).mean()),
-        "timings": timings,
+        "config": config_dict(cfg),
+        "timings": {"read_s": burst.read_s, **timings},
         "versions": _versions(),
         "warnings": warnings,
     }
     return Estimate(k.astype(np.float32), confidence.astype(np.float32), report, warnings)
+
+
+def status(holdout: dict | None) -> str:
+    """``accepted`` (the hold-out frame confirms the map), ``rejected`` (it did not: k = 1 was
+    written) or ``unchecked`` (no frame held out)."""
+    if holdout is None:
+        return "unchecked"
+    return "accepted" if holdout["passed"] else "rejected"
+
+
+def prnu_percent(plane_reports: dict) -> dict:
+    """The input gain nonuniformity in EMVA 1288's parts (percent of the mean gain): ``pixel``,
+    ``column`` and ``row`` (even/odd rows), their quadrature sum ``total``, per plane and combined
+    over the planes (root mean square). From the FPN model's split (the accurate method; the pixel
+    part has the estimation noise removed); None for the paper method, which has no split."""
+    planes = {name: p["input_fpn_percent"] for name, p in plane_reports.items() if "input_fpn_percent" in p}
+    if not planes:
+        return {"total": None, "pixel": None, "column": None, "row": None, "planes": {}}
+
+    def with_total(parts: dict) -> dict:
+        parts = {part: float(parts[part]) for part in ("pixel", "column", "row")}
+        return {"total": float(np.sqrt(sum(v**2 for v in parts.values()))), **parts}
+
+    per_plane = {name: with_total(parts) for name, parts in planes.items()}
+    combined = with_total({part: np.sqrt(np.mean([p[part] ** 2 for p in per_plane.values()]))
+                           for part in ("pixel", "column", "row")})
+    return {**combined, "planes": per_plane}
 
 
 def _track(motion_images, burst, cfg, progress) -> tuple:
@@ -284,12 +338,6 @@ def _track(motion_images, burst, cfg, progress) -> tuple:
         motion = estimate_motion(motion_images, model=cfg.motion.model, exposures=exposures)
         exposures, report = _exposures(motion_images, motion.warp, burst, cfg)
     return motion, exposures, report
-
-
-def exposure_spread_percent(report: dict) -> float:
-    """The largest exposure difference (%) from the reference that an estimate's report says was
-    divided out; 0 when none was (or the report predates exposures)."""
-    return 100.0 * max(abs(c - 1.0) for c in report.get("exposure", {}).get("relative", [1.0]))
 
 
 def _frame_homography(H: np.ndarray, S: np.ndarray) -> list:
@@ -471,49 +519,89 @@ def _gain_planes(k: np.ndarray, confidence: np.ndarray, channels: tuple[str, ...
     return planes
 
 
+#: What ``estimate`` writes into its output folder (``--overwrite`` replaces these names only).
+ESTIMATE_OUTPUTS = ("gain_map.exr", "corrected", "preview.png", "config.used.yaml", "report.json")
+
+
+def estimate_plan(out_dir: Path, paths, cfg: Config, *, overwrite: bool = False) -> OutputPlan:
+    """Check ``out_dir`` for an estimate of the frames ``paths`` before any work (:func:`outdir.prepare`)."""
+    _check_unique_stems(list(paths))
+    inputs = [*paths, *([cfg.input.dark] if cfg.input.dark else [])]
+    return prepare(out_dir, command="estimate", names=ESTIMATE_OUTPUTS, inputs=inputs, overwrite=overwrite)
+
+
 def write_estimate(result: Estimate, burst: LoadedBurst, cfg: Config, out_dir: Path, *, overwrite: bool = False,
-                   progress: Progress | None = None) -> None:
-    """gain_map.exr, corrected/*.exr, report.json, config.used.yaml and preview.png, all or nothing."""
-    check_out_dir(out_dir, overwrite)
+                   progress: Progress | None = None) -> OutputPlan:
+    """gain_map.exr, corrected/*.exr, report.json, config.used.yaml and preview.png, all or nothing.
+
+    Only these names are replaced in ``out_dir`` (and an earlier evaluation of them removed); the
+    returned plan lists what else the folder holds, untouched."""
+    plan = estimate_plan(out_dir, burst.paths, cfg, overwrite=overwrite)
     t0 = time.perf_counter()
     config_text = dump_config(cfg)
     metadata = {"gainfpn:version": __version__, "gainfpn:config": config_text,
-                "gainfpn:inputs": json.dumps([str(p) for p in burst.paths]),
+                "gainfpn:inputs": json.dumps([str(p.absolute()) for p in burst.paths]),
                 "gainfpn:motion_model": result.report["motion"]["model"]}
+    if burst.dark is not None:  # `apply` subtracts the same dark frame before k
+        metadata[ATTR_DARK] = json.dumps({"path": burst.dark.path, "sha256": burst.dark.sha256})
     if burst.cfa:
         metadata[ATTR_CFA] = burst.cfa
-    with staged_directory(out_dir) as tmp:
+    with staged(plan) as tmp:
         write_exr(tmp / "gain_map.exr", _gain_planes(result.k, result.confidence, burst.channels, burst.cfa),
                   metadata=metadata, compression=cfg.output.compression)
         if cfg.output.corrected:
-            _write_corrected(burst, result.k, tmp / "corrected", cfg, progress)
+            (tmp / "corrected").mkdir()
+            update = progress("write", len(burst.paths)) if progress else None
+            _write_corrected(lambda i: (burst.paths[i], burst.frames[i]), len(burst.paths), result.k,
+                             tmp / "corrected", cfa=burst.cfa, channels=burst.channels, saturation=burst.saturation,
+                             compression=cfg.output.compression, update=update)
         if cfg.output.preview:
             write_preview(tmp / "preview.png", result.k, result.confidence)
         write_text(tmp / "config.used.yaml", config_text)
-        result.report["timings"]["write_s"] = time.perf_counter() - t0
+        timings = result.report["timings"]
+        timings["write_s"] = time.perf_counter() - t0
+        timings["total_s"] = sum(v for key, v in timings.items() if key != "total_s")
         write_text(tmp / "report.json", json.dumps(result.report, indent=1))
+    return plan
 
 
-def _write_corrected(burst: LoadedBurst, k: np.ndarray, folder: Path, cfg: Config, progress) -> None:
-    folder.mkdir()
-    update = progress("write", len(burst.paths)) if progress else None
-    names = ("Y",) if burst.cfa or len(burst.channels) == 1 else burst.channels
+#: Header attribute of a gain map estimated on dark-subtracted frames: that dark frame's path and digest.
+ATTR_DARK = "gainfpn:dark"
+
+
+def _write_corrected(frame: Callable[[int], tuple[Path, np.ndarray]], count: int, k: np.ndarray, folder: Path, *,
+                     cfa: str | None, channels: tuple[str, ...], saturation: float | None, compression: str,
+                     update=None) -> None:
+    """``folder/<stem>.exr`` = ``k`` times each frame ``frame(i) -> (path, DN)`` for ``i < count``:
+    the one writer of corrected frames, for ``estimate`` and ``apply`` alike."""
+    names = ("Y",) if cfa or len(channels) == 1 else channels
     metadata: dict = {"gainfpn:version": __version__}
-    if burst.cfa:
-        metadata[ATTR_CFA] = burst.cfa
-    if burst.saturation is not None:
-        metadata[ATTR_SATURATION] = float(burst.saturation)
+    if cfa:
+        metadata[ATTR_CFA] = cfa
+    if saturation is not None:
+        metadata[ATTR_SATURATION] = float(saturation)
 
     def write(i: int) -> None:
-        corrected = burst.frames[i] * k
-        _check_finite(corrected, burst.paths[i])
-        write_exr(folder / f"{burst.paths[i].stem}.exr", {n: corrected[..., c] for c, n in enumerate(names)},
-                  metadata=metadata, compression=cfg.output.compression)
+        path, data = frame(i)
+        corrected = data * k
+        _check_finite(corrected, path)
+        write_exr(folder / f"{path.stem}.exr", {n: corrected[..., c] for c, n in enumerate(names)},
+                  metadata=metadata, compression=compression)
 
-    for i in range(0, len(burst.paths), 2):
-        _in_pair(write, i, i + 1 < len(burst.paths))
+    for i in range(0, count, 2):
+        _in_pair(write, i, i + 1 < count)
         if update:
-            update(min(2, len(burst.paths) - i))
+            update(min(2, count - i))
+
+
+def _check_unique_stems(paths: list[Path]) -> None:
+    """Corrected frames are named by their input's stem: two inputs must not share one."""
+    seen: dict[str, Path] = {}
+    for path in paths:
+        if path.stem in seen:
+            raise InputError(f"{path}: has the same name as {seen[path.stem]}; their corrected frames would both "
+                             f"be {path.stem}.exr")
+        seen[path.stem] = path
 
 
 #: On an error or an interrupt, how long (s) the other frame's write may take to finish (a 12 MP
@@ -607,63 +695,137 @@ def read_gain_map(path: Path) -> tuple[np.ndarray, dict]:
     return np.stack([planes[n] for n in names], axis=-1), attrs
 
 
-def apply_gain_map(gain_map: Path, inputs, out_dir: Path, *, overwrite: bool = False,
-                   progress: Progress | None = None) -> int:
-    """Correct other captures with a stored map; return how many were written."""
-    check_out_dir(out_dir, overwrite)
+def apply_dark(attrs: dict, dark: Path | None, gain_map: Path) -> Path | None:
+    """The dark frame to subtract before ``k``: the one the map was estimated with (its header
+    records path and digest), found at its recorded path or given as ``dark``; a different
+    dark frame, or one for a map estimated without, is refused."""
+    recorded = json.loads(attrs[ATTR_DARK]) if ATTR_DARK in attrs else None
+    if recorded is None:
+        if dark is not None:
+            raise InputError(f"{gain_map}: was estimated without a dark frame, so --dark {dark} would correct "
+                             "differently from the estimate; subtract it from the inputs first, or estimate with it")
+        return None
+    if dark is None:
+        dark = Path(recorded["path"])
+        if not dark.is_file():
+            raise InputError(f"{gain_map}: was estimated with the dark frame {recorded['path']} subtracted, which is "
+                             "gone; pass it with --dark")
+    if stamp(dark).sha256 != recorded["sha256"]:
+        raise InputError(f"{dark}: is not the dark frame the gain map was estimated with ({recorded['path']}, "
+                         f"sha256 {recorded['sha256'][:12]}...)")
+    return dark
+
+
+def apply_plan(gain_map: Path, paths: list[Path], out_dir: Path, *, dark: Path | None = None,
+               overwrite: bool = False) -> OutputPlan:
+    """Check ``out_dir`` for the corrected frames of ``paths`` before any work (:func:`outdir.prepare`)."""
+    _check_unique_stems(paths)
+    return prepare(out_dir, command="apply", names=[f"{p.stem}.exr" for p in paths],
+                   inputs=[*paths, gain_map, *([dark] if dark else [])], overwrite=overwrite)
+
+
+def apply_gain_map(gain_map: Path, inputs, out_dir: Path, *, dark: Path | None = None, overwrite: bool = False,
+                   progress: Progress | None = None) -> tuple[list[Path], OutputPlan]:
+    """Correct other captures with a stored map, exactly as ``estimate`` corrects its own frames
+    (the map's dark frame subtracted first); return the frames written and the output plan."""
     k, attrs = read_gain_map(gain_map)
+    dark = apply_dark(attrs, dark, gain_map)
     paths = find_frames(inputs)
+    plan = apply_plan(gain_map, paths, out_dir, dark=dark, overwrite=overwrite)
+    dark_data = None if dark is None else read_frame(dark).data
+    if dark_data is not None and dark_data.shape != k.shape:
+        raise InputError(f"{dark}: dark frame is {dark_data.shape[1]}x{dark_data.shape[0]}, the gain map "
+                         f"{k.shape[1]}x{k.shape[0]}")
     update = progress("apply", len(paths)) if progress else None
-    with staged_directory(out_dir) as tmp:
-        for path in paths:
-            frame = read_frame(path)
-            if frame.data.shape != k.shape:
-                raise InputError(f"{path}: frame is {frame.data.shape[1]}x{frame.data.shape[0]} with "
-                                 f"{frame.data.shape[2]} channel(s); the gain map is {k.shape[1]}x{k.shape[0]} with "
-                                 f"{k.shape[2]}")
-            if (frame.info.cfa or None) != (attrs.get(ATTR_CFA) or None):
-                raise InputError(f"{path}: CFA layout {frame.info.cfa} does not match the gain map's "
-                                 f"{attrs.get(ATTR_CFA)}")
-            names = ("Y",) if k.shape[2] == 1 else frame.info.channels
-            corrected = frame.data * k
-            _check_finite(corrected, path)
-            metadata = {ATTR_CFA: frame.info.cfa} if frame.info.cfa else {}
-            write_exr(tmp / f"{path.stem}.exr", {n: corrected[..., c] for c, n in enumerate(names)},
-                      metadata=metadata)
-            if update:
-                update(1)
-    return len(paths)
+    first = read_frame(paths[0])
+
+    def frame(i: int) -> tuple[Path, np.ndarray]:
+        read = first if i == 0 else read_frame(paths[i])
+        check_consistent([first.info, read.info])
+        data = read.data
+        if data.shape != k.shape:
+            raise InputError(f"{read.info.path}: frame is {data.shape[1]}x{data.shape[0]} with {data.shape[2]} "
+                             f"channel(s); the gain map is {k.shape[1]}x{k.shape[0]} with {k.shape[2]}")
+        if (read.info.cfa or None) != (attrs.get(ATTR_CFA) or None):
+            raise InputError(f"{read.info.path}: CFA layout {read.info.cfa or 'none'} does not match the gain map's "
+                             f"{attrs.get(ATTR_CFA) or 'none'}")
+        return read.info.path, data if dark_data is None else data - dark_data
+
+    with staged(plan) as tmp:
+        _write_corrected(frame, len(paths), k, tmp, cfa=first.info.cfa, channels=first.info.channels,
+                         saturation=first.info.saturation, compression="zip", update=update)
+    return [out_dir / f"{p.stem}.exr" for p in paths], plan
 
 
 def evaluate(out_dir: Path, sim_dir: Path) -> dict:
-    """Residual gain FPN and the paper's MSE before/after, against a simulation's truth."""
+    """Residual gain FPN and the paper's MSE before/after, against a simulation's truth.
+
+    Refuses a truth that is not this estimate's: another size, CFA layout or white level
+    (bit depth), or frames whose digests differ from those the estimate recorded."""
     from .truth import load_truth, residual_bound_percent
 
-    k, _ = read_gain_map(out_dir / "gain_map.exr")
+    k, attrs = read_gain_map(out_dir / "gain_map.exr")
     planes, _ = read_exr_planes(out_dir / "gain_map.exr")
     confidence = planes.get("confidence", np.ones(k.shape[:2], np.float32))
+    report = _read_report(out_dir)
     truth = load_truth(sim_dir)
-    frame0 = read_frame(find_frames([sim_dir])[0]).data[..., 0]
-    if truth.gain.shape != k.shape[:2]:
-        raise InputError(f"{sim_dir}: truth is {truth.gain.shape[1]}x{truth.gain.shape[0]}, the gain map "
-                         f"{k.shape[1]}x{k.shape[0]}")
+    sim_paths = find_frames([sim_dir])
+    first = read_frame(sim_paths[0])
+    _check_truth(report, attrs, k, truth, first, sim_paths, out_dir, sim_dir)
     est = confidence > 0
     if not est.any():
         raise EstimationError(f"{out_dir}: the gain map has no estimated pixel")
-    result = scores(k[..., 0], est, frame0, truth)
-    try:  # the frames the estimate was fitted to (one is held out to check it)
-        report = json.loads((out_dir / "report.json").read_text(encoding="utf-8"))
-        n_fit = len(report["inputs"]) - (1 if report.get("holdout") else 0)
-    except (OSError, ValueError, KeyError, TypeError):
-        n_fit = None
-    bound = None if n_fit is None else residual_bound_percent(truth, est, n_fit)
+    result = scores(k[..., 0], est, first.data[..., 0], truth)
+    n_fit = len(report["inputs"]) - (1 if report.get("holdout") else 0)  # one frame is held out to check k
+    bound = residual_bound_percent(truth, est, n_fit)
     return {**result, "residual_bound_percent": bound, "bound_frames": n_fit}
+
+
+def _read_report(out_dir: Path) -> dict:
+    path = out_dir / "report.json"
+    try:
+        report = json.loads(path.read_text(encoding="utf-8"))
+        report["inputs"][0]["sha256"]
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read ({exc.strerror or exc}); is {out_dir} a folder written by "
+                         "`gainfpn estimate`?") from None
+    except (ValueError, KeyError, TypeError, IndexError):
+        raise InputError(f"{path}: not a report of this gainfpn version (no input digests); estimate again") from None
+    return report
+
+
+def _check_truth(report, attrs, k, truth, first, sim_paths, out_dir: Path, sim_dir: Path) -> None:
+    """Raise :class:`InputError` unless ``sim_dir`` holds the burst the estimate in ``out_dir`` was made from."""
+    h, w = truth.gain.shape
+    if (h, w) != k.shape[:2]:
+        raise InputError(f"{sim_dir}: truth is {w}x{h}, the gain map {k.shape[1]}x{k.shape[0]}: not this estimate's "
+                         "simulation")
+    sim_cfa, est_cfa = first.info.cfa or "none", attrs.get(ATTR_CFA) or "none"
+    if sim_cfa != est_cfa:
+        raise InputError(f"{sim_dir}: CFA layout {sim_cfa} differs from the estimate's ({est_cfa}): not this "
+                         "estimate's simulation")
+    sim_white, est_white = first.info.layout()[4], report.get("white_level_dn")
+    if sim_white != est_white:
+        raise InputError(f"{sim_dir}: white level {_dn(sim_white)} differs from the estimate's frames' "
+                         f"({_dn(est_white)}): another bit depth, not this estimate's simulation")
+    recorded = {Path(i["path"]).name: i["sha256"] for i in report["inputs"]}
+    for path in sim_paths:
+        if path.name in recorded and stamp(path).sha256 != recorded.pop(path.name):
+            raise InputError(f"{path}: differs from the frame {path.name} the estimate in {out_dir} was made from "
+                             "(another simulation, or frames made again)")
+    if recorded:
+        raise InputError(f"{sim_dir}: has no frame {sorted(recorded)[0]}, which the estimate in {out_dir} was made "
+                         "from: not this estimate's simulation")
+
+
+def _dn(value) -> str:
+    return "not stated" if value is None else f"{value:g} DN"
 
 
 def scores(k: np.ndarray, est: np.ndarray, frame0: np.ndarray, truth) -> dict:
     """Residual gain FPN and the paper's MSE of frame 0 before/after ``k``, over the pixels ``est``."""
     return {
-        "estimated_fraction": float(est.mean()),
+        "estimated_percent": 100.0 * float(est.mean()),
         "input_fpn_percent": residual_fpn_percent(np.ones_like(k), truth.gain, est),
         "residual_fpn_percent": residual_fpn_percent(k, truth.gain, est),
         "mse_before": mse(frame0, truth.ideal, est),
@@ -673,8 +835,9 @@ def scores(k: np.ndarray, est: np.ndarray, frame0: np.ndarray, truth) -> dict:
 
 
 def simulate_to(out_dir: Path, *, fmt: str, overwrite: bool = False, scene: str | Path = "procedural",
-                parameters: dict | None = None, **burst_options) -> list[Path]:
-    """Simulate a burst (see :func:`simulate.simulate_burst`) and save it, all or nothing.
+                parameters: dict | None = None, **burst_options) -> tuple[list[Path], OutputPlan]:
+    """Simulate a burst (see :func:`simulate.simulate_burst`) and save it, all or nothing; return the
+    frames written and the output plan.
 
     ``scene`` is a built-in scene's name or the path of an image.
     """
@@ -683,10 +846,12 @@ def simulate_to(out_dir: Path, *, fmt: str, overwrite: bool = False, scene: str 
     from .truth import check_format, save_burst
 
     check_format(burst_options["sensor"], fmt)
-    check_out_dir(out_dir, overwrite)
+    names = [f"frame_{t:03d}.{fmt}" for t in range(burst_options["n_frames"])] + ["truth"]
+    plan = prepare(out_dir, command="simulate", names=names, inputs=[scene] if isinstance(scene, Path) else [],
+                   overwrite=overwrite)
     if isinstance(scene, Path):
         scene = read_scene(scene)
     burst = simulate_burst(scene=scene, **burst_options)
-    with staged_directory(out_dir) as tmp:
+    with staged(plan) as tmp:
         paths = save_burst(burst, tmp, fmt=fmt, parameters=parameters)
-    return [out_dir / p.relative_to(tmp) for p in paths]
+    return [out_dir / p.relative_to(tmp) for p in paths], plan

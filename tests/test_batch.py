@@ -18,10 +18,11 @@ from gainfpn_cli.batch import COLUMNS, INSTALL_HINT, Job, load_manifest, run_bat
 from gainfpn_cli.cli import main
 from gainfpn_cli.errors import ConfigError
 from gainfpn_cli.io import read_exr_planes
+from gainfpn_cli.outdir import MANIFEST, read_manifest
 from gainfpn_cli.simulate import simulate_burst
 from gainfpn_cli.truth import save_burst
 
-OUTPUTS = {"gain_map.exr", "corrected", "report.json", "config.used.yaml", "preview.png"}
+OUTPUTS = {"gain_map.exr", "corrected", "report.json", "config.used.yaml", "preview.png", MANIFEST}
 
 
 @pytest.fixture(scope="module")
@@ -56,12 +57,13 @@ def _check_done(out: Path, rows: list, names=("one", "two", "three")):
     assert [r["name"] for r in rows] == ["one", "broken", "two", "three"]  # manifest order
     assert by_name["broken"]["status"] == "failed" and "frame_000.exr" in by_name["broken"]["message"]
     for name in names:
-        assert by_name[name]["status"].startswith("done"), by_name[name]
+        assert by_name[name]["status"] == "done", by_name[name]
         assert set(p.name for p in (out / name).iterdir()) == OUTPUTS
         assert by_name[name]["frames"] == 6 and by_name[name]["motion_model"]
         assert by_name[name]["exposure_spread_percent"] == 0.0  # simulated with one exposure
     assert not (out / "broken").exists()
-    assert not [p for p in out.iterdir() if p.name.startswith(".")]  # no staging folder left behind
+    assert not [p for p in out.iterdir() if p.name.startswith(".") and p.name != MANIFEST]  # no staging left
+    assert set(read_manifest(out)) == {"one", "two", "three", "summary.csv", "summary.json"}
     assert json.loads((out / "summary.json").read_text()) == rows
     lines = (out / "summary.csv").read_text().splitlines()
     assert lines[0] == ",".join(COLUMNS) and len(lines) == 5
@@ -88,9 +90,9 @@ def test_a_manifest_is_read_strictly(tmp_path):
 
 def test_a_batch_here_reports_a_failing_burst_finishes_the_others_and_resumes(bursts, tmp_path):
     out = tmp_path / "out"
-    result = CliRunner().invoke(main, ["batch", str(bursts / "manifest.yaml"), "-o", str(out), "--quiet"])
+    result = CliRunner().invoke(main, ["batch", str(bursts / "manifest.yaml"), "-o", str(out)])
     assert result.exit_code == 1, result.output
-    assert "3 of 4 bursts done (0 earlier), 1 failed" in result.output and "Error: broken:" in result.output
+    assert "3 of 4 bursts done (0 earlier, 0 rejected by the hold-out check), 1 failed" in result.output and "Error: broken:" in result.output
     rows = json.loads((out / "summary.json").read_text())
     _check_done(out, rows)
     # the same as `gainfpn estimate` writes
@@ -99,12 +101,13 @@ def test_a_batch_here_reports_a_failing_burst_finishes_the_others_and_resumes(bu
     assert all(np.array_equal(_k(alone)[c], _k(out / "two")[c]) for c in ("Y", "confidence"))
     # a re-run skips what is done and leaves it untouched
     stamp = (out / "two" / "gain_map.exr").stat().st_mtime_ns
-    again = CliRunner().invoke(main, ["batch", str(bursts / "manifest.yaml"), "-o", str(out), "--quiet"])
-    assert "3 of 4 bursts done (3 earlier), 1 failed" in again.output
+    again = CliRunner().invoke(main, ["batch", str(bursts / "manifest.yaml"), "-o", str(out)])
+    assert "3 of 4 bursts done (3 earlier, 0 rejected by the hold-out check), 1 failed" in again.output
     assert (out / "two" / "gain_map.exr").stat().st_mtime_ns == stamp
     rerun = json.loads((out / "summary.json").read_text())
-    assert [r["status"] for r in rerun] == ["done earlier", "failed", "done earlier", "done earlier"]
-    assert [r["input_fpn_pixel_percent"] for r in rerun] == [r["input_fpn_pixel_percent"] for r in rows]
+    assert [r["status"] for r in rerun] == ["done", "failed", "done", "done"]
+    assert [r["earlier"] for r in rerun] == [True, False, True, True]
+    assert [r["prnu_pixel_percent"] for r in rerun] == [r["prnu_pixel_percent"] for r in rows]
 
 
 def test_without_dask_a_cluster_batch_says_what_to_install(bursts, tmp_path, monkeypatch):
@@ -151,7 +154,7 @@ def test_a_batch_on_a_local_cluster_survives_a_killed_worker_and_matches_the_loc
 
     killer = threading.Thread(target=kill_a_busy_worker)
     killer.start()
-    rows = run_batch(load_manifest(bursts / "manifest.yaml"), out, client=cluster)
+    rows, _ = run_batch(load_manifest(bursts / "manifest.yaml"), out, client=cluster)
     killer.join()
     assert killed, "no worker was busy to kill"
     _check_done(out, rows)
@@ -179,7 +182,8 @@ def test_the_summary_gives_the_largest_exposure_difference_divided_out():
 
     report = {"planes": {"Y": {"method": "accurate", "fpn_model": "pixel", "input_fpn_percent": {"pixel": 5.0}}},
               "warnings": [], "inputs": ["a", "b", "c"], "motion": {"model": "affine"},
-              "predicted_residual_fpn_percent": 0.6, "holdout": None,
+              "predicted_residual_percent": 0.6, "holdout": None, "status": "unchecked",
+              "prnu_percent": {"total": 5.0, "pixel": 5.0, "column": 0.0, "row": 0.0},
               "exposure": {"mode": "per-frame", "relative": [1.0, 1.05, 0.97], "measured": [1.0, 1.05, 0.97]}}
     assert _row("x", report, 1.0)["exposure_spread_percent"] == 5.0
     del report["exposure"]  # a report written before exposures were measured

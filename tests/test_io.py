@@ -179,7 +179,7 @@ def test_stack_must_share_size_kind_and_cfa(tmp_path, rng):
     with pytest.raises(InputError, match=r"b\.exr: size 12x8 differs from a\.exr \(10x8\)"):
         io.read_stack(io.find_frames([tmp_path / "a.exr", tmp_path / "b.exr"]))
     io.write_exr(tmp_path / "c.exr", {"Y": rng.random((8, 10))}, metadata={io.ATTR_CFA: "RGGB"})
-    with pytest.raises(InputError, match=r"c\.exr: CFA layout RGGB differs from a\.exr \(None\)"):
+    with pytest.raises(InputError, match=r"c\.exr: CFA layout RGGB differs from a\.exr \(not stated\)"):
         io.read_stack(io.find_frames([tmp_path / "a.exr", tmp_path / "c.exr"]))
     _dng(tmp_path / "d.dng", rng.integers(0, 4000, (32, 32)))
     with pytest.raises(InputError, match=r"d\.dng: file type raw differs from a\.exr \(exr\)"):
@@ -226,17 +226,24 @@ def test_read_scene_linearises_8bit(tmp_path):
     np.testing.assert_allclose(scene, (128 / 255) ** 2.2, rtol=1e-5)
 
 
-def test_staged_directory_is_all_or_nothing(tmp_path):
+def test_staged_outputs_are_all_or_nothing(tmp_path):
+    from gainfpn_cli import outdir
+
     out = tmp_path / "out"
-    with io.staged_directory(out) as tmp:
+
+    def plan(*names):
+        return outdir.prepare(out, command="apply", names=names, overwrite=True)
+
+    with outdir.staged(plan("a.txt")) as tmp:
         (tmp / "a.txt").write_text("first")
     assert (out / "a.txt").read_text() == "first"
     with pytest.raises(KeyboardInterrupt):
-        with io.staged_directory(out) as tmp:
+        with outdir.staged(plan("b.txt")) as tmp:
             (tmp / "b.txt").write_text("half")
             raise KeyboardInterrupt
-    assert sorted(p.name for p in out.iterdir()) == ["a.txt"]  # the earlier results are intact
-    with io.staged_directory(out) as tmp:
+    assert sorted(p.name for p in out.iterdir()) == [outdir.MANIFEST, "a.txt"]  # the earlier results are intact
+    with outdir.staged(plan("c.txt")) as tmp:
         (tmp / "c.txt").write_text("second")
-    assert sorted(p.name for p in out.iterdir()) == ["c.txt"]  # replaced, never mixed
+    # the command's earlier output is replaced, never mixed with the new one
+    assert sorted(p.name for p in out.iterdir()) == [outdir.MANIFEST, "c.txt"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # no staging left

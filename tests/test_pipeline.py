@@ -1,4 +1,5 @@
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -7,6 +8,7 @@ from click.testing import CliRunner
 from gainfpn_cli import io, metrics
 from gainfpn_cli.cli import main
 from gainfpn_cli.config import Config, load_config
+from gainfpn_cli.outdir import MANIFEST
 from gainfpn_cli.pipeline import estimate, load_burst, write_estimate
 from gainfpn_cli.simulate import Shake, simulate_burst
 from gainfpn_cli.truth import save_burst
@@ -31,8 +33,8 @@ def test_simulate_estimate_evaluate_improves_the_burst(exr_burst, tmp_path):
     out = tmp_path / "out"
     result = _run(runner, "estimate", folder, "-o", out, "--quiet", "--workers", "1")
     assert result.exit_code == 0, result.output
-    assert sorted(p.name for p in out.iterdir()) == ["config.used.yaml", "corrected", "gain_map.exr", "preview.png",
-                                                      "report.json"]
+    assert sorted(p.name for p in out.iterdir()) == [MANIFEST, "config.used.yaml", "corrected", "gain_map.exr",
+                                                      "preview.png", "report.json"]
     assert len(list((out / "corrected").glob("*.exr"))) == 6
     scores_run = _run(runner, "evaluate", out, "--truth", folder)
     assert scores_run.exit_code == 0 and "MSE reduction" in scores_run.output
@@ -56,10 +58,18 @@ def test_outputs_are_complete_and_documented(exr_burst, tmp_path):
     assert k[conf > 0].mean() == pytest.approx(1.0, abs=1e-5)
     assert attrs["gainfpn:motion_model"] in ("translation", "affine", "homography")
     assert load_config(tmp_path / "o" / "config.used.yaml") == cfg
-    assert json.loads(attrs["gainfpn:inputs"]) == [str(p) for p in loaded.paths]
+    assert json.loads(attrs["gainfpn:inputs"]) == [str(p.absolute()) for p in loaded.paths]
     report = json.loads((tmp_path / "o" / "report.json").read_text())
-    for key in ("motion", "planes", "holdout", "timings", "versions", "predicted_residual_fpn_percent"):
+    for key in ("motion", "planes", "holdout", "timings", "versions", "predicted_residual_percent", "prnu_percent",
+                "config", "status"):
         assert key in report
+    assert [Path(i["path"]) for i in report["inputs"]] == [p.absolute() for p in loaded.paths]
+    assert all(len(i["sha256"]) == 64 and i["size_bytes"] > 0 for i in report["inputs"])
+    assert set(report["timings"]) == {"read_s", "motion_s", "solve_s", "holdout_s", "write_s", "total_s"}
+    assert report["timings"]["total_s"] == pytest.approx(sum(v for k_, v in report["timings"].items()
+                                                             if k_ != "total_s"))
+    # one unit convention: no fractions beside the percentages
+    assert not [k_ for k_ in report if "fraction" in k_]
     assert report["holdout"]["passed"] is True
     corrected = io.read_frame(tmp_path / "o" / "corrected" / "frame_000.exr").data[..., 0]
     np.testing.assert_allclose(corrected, burst.frames[0] * k, rtol=1e-6)
@@ -99,12 +109,13 @@ def test_existing_output_is_not_mixed(exr_burst, tmp_path):
     out.mkdir()
     (out / "mine.txt").write_text("keep me")
     runner = CliRunner()
-    result = _run(runner, "estimate", folder, "-o", out, "--quiet")
-    assert result.exit_code == 1 and "directory is not empty" in result.output
-    assert sorted(p.name for p in out.iterdir()) == ["mine.txt"]
+    result = _run(runner, "estimate", folder, "-o", out, "--quiet", "--workers", "1")
+    assert result.exit_code == 0
+    result = _run(runner, "estimate", folder, "-o", out, "--quiet", "--workers", "1")
+    assert result.exit_code == 1 and "already holds results of gainfpn" in result.output
     result = _run(runner, "estimate", folder, "-o", out, "--quiet", "--overwrite", "--workers", "1")
     assert result.exit_code == 0
-    assert not (out / "mine.txt").exists() and (out / "gain_map.exr").exists()
+    assert (out / "mine.txt").read_text() == "keep me" and (out / "gain_map.exr").exists()
     assert not list(tmp_path.glob(".out.*"))  # no staging left behind
 
 
@@ -137,13 +148,13 @@ def test_apply_corrects_other_captures_and_checks_size(exr_burst, tmp_path):
 
 def test_paper_method_end_to_end(exr_burst, tmp_path):
     folder, _ = exr_burst
-    result = _run(CliRunner(), "estimate", folder, "-o", tmp_path / "p", "--method", "paper", "-q", "--workers", "1")
+    result = _run(CliRunner(), "estimate", folder, "-o", tmp_path / "p", "--method", "paper", "--workers", "1")
     assert result.exit_code == 0, result.output
     report = json.loads((tmp_path / "p" / "report.json").read_text())
     assert report["planes"]["Y"]["method"] == "paper"
     # the paper method's confidence is a status (1, 0.5, 0), not a standard error
-    assert report["predicted_residual_fpn_percent"] is None
-    assert "predicted residual" not in result.output
+    assert report["predicted_residual_percent"] is None
+    assert "predicted residual" not in result.output and "PRNU not measured" in result.output
 
 
 def test_config_errors_exit_1(exr_burst, tmp_path):
