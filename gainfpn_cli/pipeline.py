@@ -30,6 +30,7 @@ from .fpnmodel import select_model
 from .io import (ATTR_CFA, ATTR_SATURATION, FileStamp, atomic_output, check_consistent, find_frames,
                  read_exr_planes, read_frame, stamp, write_exr, write_text)
 from .outdir import OutputPlan, prepare, staged
+from .preview import write_preview
 from .metrics import mse, residual_fpn_percent
 from .exposure import relative_exposures, rough_exposures, significant
 from .motion import estimate_motion, moving_masks
@@ -53,8 +54,6 @@ MIN_TRACK_SIDE = 64
 #: shadows also crosses it while its bright parts are fine, so it is a
 #: warning, not an error.
 MAX_DARK_FRACTION = 0.01
-#: Longest side (px) of the gain map shown in preview.png.
-PREVIEW_PX = 1024
 
 #: progress(stage, total) -> update(n): the CLI's tqdm, or nothing
 Progress = Callable[[str, int], Callable[[int], None]]
@@ -556,7 +555,8 @@ def write_estimate(result: Estimate, burst: LoadedBurst, cfg: Config, out_dir: P
                              tmp / "corrected", cfa=burst.cfa, channels=burst.channels, saturation=burst.saturation,
                              compression=cfg.output.compression, update=update)
         if cfg.output.preview:
-            write_preview(tmp / "preview.png", result.k, result.confidence)
+            write_preview(tmp / "preview.png", result.k, result.confidence, report=result.report,
+                          name=burst_name(burst.paths), cfa=burst.cfa, channels=burst.channels)
         write_text(tmp / "config.used.yaml", config_text)
         timings = result.report["timings"]
         timings["write_s"] = time.perf_counter() - t0
@@ -592,6 +592,14 @@ def _write_corrected(frame: Callable[[int], tuple[Path, np.ndarray]], count: int
         _in_pair(write, i, i + 1 < count)
         if update:
             update(min(2, count - i))
+
+
+def burst_name(paths: list[Path]) -> str:
+    """What the preview's title calls a burst: its folder, or its first and last frames."""
+    folders = {p.absolute().parent for p in paths}
+    if len(folders) == 1:
+        return f"{folders.pop().name}/"
+    return f"{paths[0].name} ... {paths[-1].name}"
 
 
 def _check_unique_stems(paths: list[Path]) -> None:
@@ -644,40 +652,6 @@ def _check_finite(corrected: np.ndarray, path: Path) -> None:
     if not np.isfinite(corrected).all():
         raise EstimationError(f"{path}: the corrected frame exceeds the float32 range (inputs near 3.4e38); "
                               "scale the input down")
-
-
-def write_preview(path: Path, k: np.ndarray, confidence: np.ndarray) -> None:
-    """The gain map (first plane, +-3 robust sigma, colour-mapped) beside a histogram of k.
-
-    Maps longer than :data:`PREVIEW_PX` are shown (and their histogram taken) on every
-    n-th pixel, not averaged, so that the pixel-level pattern stays visible; a 12 MP
-    map took 1.3 s at full size.
-    """
-    import cv2
-
-    step = max(1, -(-max(k.shape[:2]) // PREVIEW_PX))
-    plane = np.asarray(k[::step, ::step, 0], np.float64)
-    est = confidence[::step, ::step, 0] > 0
-    values = plane[est] if est.any() else plane.ravel()
-    sigma = max(1.4826 * float(np.median(np.abs(values - np.median(values)))), 1e-4)
-    scaled = np.clip((plane - 1.0) / (3 * sigma) * 127.5 + 127.5, 0, 255).astype(np.uint8)
-    scale = max(1, 256 // max(plane.shape))
-    image = cv2.applyColorMap(scaled, cv2.COLORMAP_VIRIDIS)
-    image[~est] = 0
-    image = cv2.resize(image, (plane.shape[1] * scale, plane.shape[0] * scale), interpolation=cv2.INTER_NEAREST)
-    hist_h, hist_w = image.shape[0], 256
-    counts, _ = np.histogram(values, bins=64, range=(1 - 4 * sigma, 1 + 4 * sigma))
-    hist = np.full((hist_h, hist_w, 3), 255, np.uint8)
-    top = max(int(counts.max()), 1)
-    for i, c in enumerate(counts):
-        bar = int((hist_h - 20) * c / top)
-        cv2.rectangle(hist, (i * 4, hist_h - 1 - bar), (i * 4 + 3, hist_h - 1), (90, 60, 20), -1)
-    cv2.putText(hist, f"k: 1 +- {100 * sigma:.2f}%", (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1)
-    if step > 1:
-        cv2.putText(hist, f"every {step}th pixel", (4, 30), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1)
-    with atomic_output(path) as tmp:
-        if not cv2.imwrite(str(tmp), np.hstack([image, hist])):
-            raise InputError(f"{path}: cannot write PNG")
 
 
 # ---------------------------------------------------------------------------

@@ -242,18 +242,6 @@ def test_a_burst_no_single_warp_explains_is_corrected_through_its_field(kind, mo
     assert metrics.mse(frame0, burst.ideal[0]) > 4 * metrics.mse(k * frame0, burst.ideal[0])
 
 
-def test_the_preview_of_a_large_map_is_subsampled(tmp_path):
-    import cv2
-
-    from gainfpn_cli.pipeline import PREVIEW_PX, write_preview
-
-    k = (1 + 0.01 * np.random.default_rng(0).standard_normal((2100, 3000, 1))).astype(np.float32)
-    write_preview(tmp_path / "p.png", k, np.ones_like(k))
-    image = cv2.imread(str(tmp_path / "p.png"))
-    assert image.shape[:2] == (700, 1000 + 256)  # every 3rd pixel beside the 256 px histogram
-    assert max(image.shape[:2]) <= PREVIEW_PX + 256
-
-
 def test_colour_channels_and_a_later_reference_share_the_masks_and_the_solve():
     # the moving-pixel masks reach every channel (they are broadcast, not
     # copied); a reference that is not the first frame is solved on a
