@@ -81,6 +81,14 @@ def _parse_scene(ctx, param, value):
     return path
 
 
+def _cfg(key: str) -> str:
+    """``[default: VALUE from config KEY]`` for a flag that overrides a config key."""
+    from .config import Config
+
+    section, name = key.split(".")
+    return f"[default: {getattr(getattr(Config(), section), name)} (config {key})]"
+
+
 #: Presets shipped in configs/ (read from the package, so a new YAML there is a new choice).
 def _presets() -> list[str]:
     from .config import preset_names
@@ -106,11 +114,11 @@ preset_option = click.option("--preset", type=click.Choice(_presets()), help="Sh
 @click.argument("out_dir", type=click.Path(file_okay=False, path_type=Path))
 @click.option("--preset", type=click.Choice(["paper", "raw12"]), default="paper", show_default=True,
               help="Sensor: the paper's 8-bit sensor, or a 12-bit RGGB camera.")
-@click.option("--frames", "n_frames", type=click.IntRange(1, 1024), default=8, show_default=True)
+@click.option("--frames", "n_frames", type=click.IntRange(1, 1024), default=8, help="Frames in the burst.")
 @click.option("--size", default="320x240", show_default=True, callback=_parse_size, help="WIDTHxHEIGHT in pixels.")
 @click.option("--format", "fmt", type=click.Choice(["exr", "dng"]), default=None,
               help="Frame files [default: exr for paper, dng for raw12].")
-@click.option("--seed", type=click.IntRange(0), default=0, show_default=True)
+@click.option("--seed", type=click.IntRange(0), default=0, help="Seed of every random draw.")
 @click.option("--scene", default="procedural", show_default=True, callback=_parse_scene,
               help="Built-in texture (procedural, dead-leaves) or an image file to use as the scene.")
 @click.option("--fpn-pixel", type=click.FloatRange(0, 0.5), help="Sigma of the per-pixel gain.")
@@ -223,12 +231,13 @@ def _print_json(record) -> None:
               help="Output directory.")
 @config_option
 @preset_option
-@click.option("--method", type=click.Choice(["accurate", "paper"]), help="Solver method.")
-@click.option("--workers", type=click.IntRange(1), help="Solver processes.")
-@click.option("--block-size", type=click.IntRange(1), help="Paper method: block side, px.")
-@click.option("--lam", type=click.FloatRange(0), help="Ridge weight lambda.")
-@click.option("--reference", type=click.IntRange(0), help="Index of the reference frame.")
-@click.option("--dark", type=click.Path(exists=True, dir_okay=False), help="Master dark frame to subtract.")
+@click.option("--method", type=click.Choice(["accurate", "paper"]), help=f"Solver method. {_cfg('solver.method')}")
+@click.option("--workers", type=click.IntRange(1), help=f"Solver processes. {_cfg('solver.workers')}")
+@click.option("--block-size", type=click.IntRange(1), help=f"Paper method: block side, px. {_cfg('solver.block_size')}")
+@click.option("--lam", type=click.FloatRange(0), help=f"Ridge weight lambda. {_cfg('solver.lam')}")
+@click.option("--reference", type=click.IntRange(0), help=f"Index of the reference frame. {_cfg('input.reference')}")
+@click.option("--dark", type=click.Path(exists=True, dir_okay=False), help="Master dark frame to subtract. "
+              "[default: none]")
 @overwrite_option
 @click.option("--scheduler", metavar="ADDRESS",
               help="Solve the blocks on this Dask cluster (e.g. tcp://host:8786) instead of local processes.")
