@@ -71,7 +71,7 @@ def _parse_size(ctx, param, value: str) -> tuple[int, int]:
 
 
 def _parse_scene(ctx, param, value):
-    from .simulate import SCENES
+    from .sim.simulate import SCENES
 
     if value in SCENES:
         return value
@@ -152,8 +152,8 @@ def simulate(out_dir, preset, n_frames, size, fmt, seed, scene, fpn_pixel, fpn_c
     """Write a synthetic burst with known gains and motion into OUT_DIR."""
     import dataclasses
 
-    from .pipeline import simulate_to
-    from .simulate import PRESETS, Shake, with_overrides
+    from .sim.truth import simulate_to
+    from .sim.simulate import PRESETS, Shake, with_overrides
 
     sensor = with_overrides(PRESETS[preset], fpn_pixel=fpn_pixel, fpn_column=fpn_column, fpn_row=fpn_row,
                             read_noise_e=read_noise, adc_bits=bits, black_level=black)
@@ -255,9 +255,10 @@ def estimate(inputs, out_dir, config_path, preset, method, workers, block_size, 
     1 on a user error.
     """
     from .config import load_config
-    from .io import find_frames
+    from .files import find_frames
+    from .outputs import estimate_plan, write_estimate
     from .pipeline import estimate as run_estimate
-    from .pipeline import estimate_plan, load_burst, write_estimate
+    from .pipeline import load_burst
     from .summary import estimate_line, estimate_record
 
     cfg = load_config(config_path, preset=preset, overrides={
@@ -267,7 +268,7 @@ def estimate(inputs, out_dir, config_path, preset, method, workers, block_size, 
     progress = _progress(quiet)
     with contextlib.ExitStack() as stack:
         if scheduler:
-            from .batch import connect
+            from .tools.batch import connect
             from .parallel import dask_backend
 
             client = stack.enter_context(connect(scheduler))
@@ -316,7 +317,7 @@ def batch(manifest, out_dir, config_path, preset, overwrite, scheduler, local_wo
     every burst is done, 1 if any failed, 3 with --strict if none failed but
     the hold-out check rejected one.
     """
-    from .batch import Defaults, connect, load_manifest, local_cluster, run_batch
+    from .tools.batch import Defaults, connect, load_manifest, local_cluster, run_batch
 
     if scheduler and local_workers:
         raise click.UsageError("give --scheduler or --local-cluster, not both")
@@ -375,7 +376,7 @@ def apply(inputs, gain_map, out_dir, dark, overwrite, as_json, quiet):
     Writes OUT/<name>.exr for each input. A map estimated with --dark has that
     dark frame subtracted first (found where its header says, or given again).
     """
-    from .pipeline import apply_gain_map
+    from .outputs import apply_gain_map
 
     progress = _progress(quiet)
     try:
@@ -407,9 +408,9 @@ def evaluate(est_dir, sim_dir, out_dir, overwrite, as_json, quiet):
     """
     import json
 
-    from .io import write_text
+    from .files import write_text
     from .outdir import prepare, staged
-    from .pipeline import evaluate as run_evaluate
+    from .sim.evaluate import evaluate as run_evaluate
 
     out_dir = out_dir or est_dir
     scores = run_evaluate(est_dir, sim_dir)  # a truth that is not the estimate's is refused first
@@ -449,7 +450,7 @@ def bench(out_dir, quick, groups, overwrite, quiet):
     calibration and the noise floor, scaling, parallel efficiency and
     flow-error sensitivity (see gainfpn_cli/bench.py).
     """
-    from .bench import OUTPUTS, plan, run
+    from .tools.bench import OUTPUTS, plan, run
     from .outdir import prepare, staged
 
     try:

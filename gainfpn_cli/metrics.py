@@ -75,3 +75,8 @@ def mixture_spread(sigmas: np.ndarray) -> float:
         return float("nan")
     below = lambda m: float(np.mean(erf(m / (np.sqrt(2.0) * s)))) - 0.5  # noqa: E731
     return 1.4826 * brentq(below, 0.0, 10.0 * float(s.max()))
+
+
+def point_noise_variance(distances: np.ndarray) -> float:
+    """Per-coordinate variance of 2-D Gaussian errors from their lengths: median(d^2) = 2 ln 2 sigma^2."""
+    return float(np.median(distances**2)) / (2 * np.log(2))

@@ -209,7 +209,7 @@ def record(out_dir: Path, names: Iterable[str], command: str) -> None:
 
 
 def _write_manifest(out_dir: Path, entries: dict[str, str]) -> None:
-    from .io import write_text
+    from .files import write_text
 
     text = json.dumps({"about": "names gainfpn wrote in this folder; --overwrite replaces only these",
                        "entries": dict(sorted(entries.items()))}, indent=1)

@@ -81,7 +81,7 @@ def write_preview(path: Path, k: np.ndarray, confidence: np.ndarray, *, report: 
     line2 = prnu_text(report["prnu_percent"]) + (f" -> predicted residual {after:.2f} %" if after is not None else "")
     fig.suptitle(f"{line1}\n{line2}; {holdout_text(report['holdout'])}", fontsize=11)
 
-    from .io import atomic_output
+    from .files import atomic_output
 
     with atomic_output(path) as tmp:
         try:

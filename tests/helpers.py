@@ -12,8 +12,9 @@ import pytest
 
 from gainfpn_cli import metrics
 from gainfpn_cli.config import load_config
-from gainfpn_cli.pipeline import LoadedBurst, estimate
-from gainfpn_cli.simulate import simulate_burst
+from gainfpn_cli.burst import LoadedBurst
+from gainfpn_cli.pipeline import estimate
+from gainfpn_cli.sim.simulate import simulate_burst
 
 SHAPE = (64, 80)
 

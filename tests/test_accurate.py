@@ -2,10 +2,10 @@ import numpy as np
 import pytest
 
 from gainfpn_cli import metrics
-from gainfpn_cli.accurate import AccurateOptions, solve_accurate
+from gainfpn_cli.solve.accurate import AccurateOptions, solve_accurate
 from gainfpn_cli.errors import EstimationError
-from gainfpn_cli.simulate import PRESETS, Shake, simulate_burst, with_overrides
-from gainfpn_cli.warp import low_pass
+from gainfpn_cli.sim.simulate import PRESETS, Shake, simulate_burst, with_overrides
+from gainfpn_cli.geometry.resample import low_pass
 
 NOISELESS = with_overrides(PRESETS["paper"], read_noise_e=0.0, shot_noise=False, adc_bits=16)
 
@@ -219,7 +219,7 @@ def test_tiny_frames(shape):
 
 
 def test_partner_frames_are_the_nearest_in_burst_order():
-    from gainfpn_cli.accurate import partner_frames
+    from gainfpn_cli.solve.accurate import partner_frames
 
     assert partner_frames(0, 8, 2) == [1, 7]
     assert partner_frames(3, 8, 3) == [4, 2, 5]
@@ -241,10 +241,10 @@ def test_fewer_partners_cost_little_accuracy():
 def test_the_greens_on_their_lattice_alias_less_than_each_green_plane():
     # measured with the true motion, 160x200 raw12 dead leaves (seed 4):
     # residual 1.10 % together, 2.01 % and 1.83 % alone
-    from gainfpn_cli.bayer import green_lattice, plane_to_mosaic
+    from gainfpn_cli.geometry.cfa import green_lattice, plane_to_mosaic
     from gainfpn_cli.metrics import residual_fpn_percent
-    from gainfpn_cli.simulate import PRESETS
-    from gainfpn_cli.trajectory import GlobalWarp
+    from gainfpn_cli.sim.simulate import PRESETS
+    from gainfpn_cli.geometry.warps import GlobalWarp
 
     sensor = PRESETS["raw12"]
     burst = simulate_burst(shape=(160, 200), n_frames=8, sensor=sensor, scene="dead-leaves", seed=4)
@@ -277,7 +277,7 @@ def test_a_poorly_determined_solve_stops_early_and_gains_by_it():
 
 
 def test_sample_phase_is_zero_on_pixels_and_two_between_four():
-    from gainfpn_cli.accurate import sample_phase
+    from gainfpn_cli.solve.accurate import sample_phase
 
     shift = lambda dx, dy: np.array([[1.0, 0, dx], [0, 1.0, dy], [0, 0, 1.0]])  # noqa: E731
     np.testing.assert_allclose(sample_phase(shift(3.0, -2.0), (4, 5)), 0.0, atol=1e-6)
@@ -289,7 +289,7 @@ def test_sample_phase_is_zero_on_pixels_and_two_between_four():
 def test_phase_weights_recover_the_precision_of_each_comparison():
     # residuals drawn with variance a + b phase (a: noise, b: interpolation
     # error, larger on the right half); the weights are u / (a + b phase)
-    from gainfpn_cli.accurate import _phase_weighted, sample_phase
+    from gainfpn_cli.solve.accurate import _phase_weighted, sample_phase
 
     rng = np.random.default_rng(5)
     shape = (64, 64)
@@ -314,10 +314,10 @@ def test_phase_weights_help_where_the_planes_alias():
     # a RAW mosaic's colour planes sample the scene every 2 photosites: their
     # interpolation errs most between pixels. Here (red plane, true motion)
     # measured 2.31 -> 2.01 % (seeds 5 and 6: 2.49 -> 2.05, 1.63 -> 1.46 %).
-    from gainfpn_cli.bayer import plane_to_mosaic
+    from gainfpn_cli.geometry.cfa import plane_to_mosaic
     from gainfpn_cli.metrics import residual_fpn_percent
-    from gainfpn_cli.simulate import PRESETS
-    from gainfpn_cli.trajectory import GlobalWarp
+    from gainfpn_cli.sim.simulate import PRESETS
+    from gainfpn_cli.geometry.warps import GlobalWarp
 
     sensor = PRESETS["raw12"]
     burst = simulate_burst(shape=(160, 200), n_frames=8, sensor=sensor, scene="dead-leaves", seed=4)

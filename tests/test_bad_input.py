@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from gainfpn_cli import io
+from gainfpn_cli import files as io
 from gainfpn_cli.cli import main
-from gainfpn_cli.simulate import PRESETS, simulate_burst, with_overrides
-from gainfpn_cli.truth import save_burst
+from gainfpn_cli.sim.simulate import PRESETS, simulate_burst, with_overrides
+from gainfpn_cli.sim.truth import save_burst
 from helpers import _write_raw_exr  # the gainfpn writer refuses non-finite pixels itself
 
 
@@ -132,9 +132,9 @@ def test_unusual_black_levels_are_read_from_the_file(tmp_path):
 
 
 def test_a_full_disk_while_writing(burst, tmp_path, monkeypatch):
-    from gainfpn_cli import pipeline
+    from gainfpn_cli import outputs
 
-    write = pipeline.write_exr
+    write = outputs.write_exr
     calls = []
 
     def full(path, *args, **kwargs):
@@ -143,7 +143,7 @@ def test_a_full_disk_while_writing(burst, tmp_path, monkeypatch):
             raise io.InputError(f"{path}: cannot write ({__import__('os').strerror(errno.ENOSPC)})")
         return write(path, *args, **kwargs)
 
-    monkeypatch.setattr(pipeline, "write_exr", full)
+    monkeypatch.setattr(outputs, "write_exr", full)
     _assert_refused(_estimate([burst], tmp_path / "out"), tmp_path / "out", "No space left on device")
 
 

@@ -14,13 +14,13 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from gainfpn_cli.batch import COLUMNS, INSTALL_HINT, Job, load_manifest, run_batch
+from gainfpn_cli.tools.batch import COLUMNS, INSTALL_HINT, Job, load_manifest, run_batch
 from gainfpn_cli.cli import main
 from gainfpn_cli.errors import ConfigError
-from gainfpn_cli.io import read_exr_planes
+from gainfpn_cli.files import read_exr_planes
 from gainfpn_cli.outdir import MANIFEST, read_manifest
-from gainfpn_cli.simulate import simulate_burst
-from gainfpn_cli.truth import save_burst
+from gainfpn_cli.sim.simulate import simulate_burst
+from gainfpn_cli.sim.truth import save_burst
 
 OUTPUTS = {"gain_map.exr", "corrected", "report.json", "config.used.yaml", "preview.png", MANIFEST}
 
@@ -123,7 +123,7 @@ def test_without_dask_a_cluster_batch_says_what_to_install(bursts, tmp_path, mon
 @pytest.fixture(scope="module")
 def cluster():
     pytest.importorskip("distributed")
-    from gainfpn_cli.batch import local_cluster
+    from gainfpn_cli.tools.batch import local_cluster
 
     client = local_cluster(2)
     yield client
@@ -178,7 +178,7 @@ def test_the_solver_runs_its_tiles_on_dask_bit_identically(bursts, cluster):
 
 
 def test_the_summary_gives_the_largest_exposure_difference_divided_out():
-    from gainfpn_cli.batch import _row
+    from gainfpn_cli.tools.batch import _row
 
     report = {"planes": {"Y": {"method": "accurate", "fpn_model": "pixel", "input_fpn_percent": {"pixel": 5.0}}},
               "warnings": [], "inputs": ["a", "b", "c"], "motion": {"model": "affine"},

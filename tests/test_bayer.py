@@ -4,7 +4,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from gainfpn_cli import bayer
+from gainfpn_cli.geometry import cfa as bayer
 
 
 @given(hnp.arrays(np.float32, hnp.array_shapes(min_dims=2, max_dims=2, min_side=2, max_side=15)))
@@ -60,7 +60,7 @@ def test_plane_homography_agrees_with_mosaic_motion(tx, ty, offset):
 @pytest.mark.parametrize("cfa", ["RGGB", "BGGR", "GRBG", "GBRG"])
 @pytest.mark.parametrize("shape", [(6, 8), (7, 9), (10, 5)])
 def test_green_lattice_maps_every_green_photosite_exactly(cfa, shape):
-    from gainfpn_cli.bayer import green_lattice
+    from gainfpn_cli.geometry.cfa import green_lattice
 
     lattice = green_lattice(cfa, shape)
     colours = np.array(list(cfa)).reshape(2, 2)
@@ -83,7 +83,7 @@ def test_green_lattice_maps_every_green_photosite_exactly(cfa, shape):
 
 
 def test_no_green_lattice_without_diagonal_greens():
-    from gainfpn_cli.bayer import green_lattice
+    from gainfpn_cli.geometry.cfa import green_lattice
 
     assert green_lattice("RGBG", (8, 8)) is None  # greens side by side in one row
     assert green_lattice("RGBW", (8, 8)) is None

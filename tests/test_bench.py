@@ -3,8 +3,8 @@ import json
 import pytest
 from click.testing import CliRunner
 
-from gainfpn_cli import bench
-from gainfpn_cli.bench import BurstSpec, Point
+from gainfpn_cli.tools import bench
+from gainfpn_cli.tools.bench import BurstSpec, Point
 from gainfpn_cli.cli import main
 
 
@@ -37,7 +37,7 @@ def test_a_small_plan_runs_every_kind_of_point(tmp_path, monkeypatch):
 def test_background_rms_is_the_trajectory_error_off_the_moving_object():
     import numpy as np
 
-    from gainfpn_cli.simulate import simulate_burst
+    from gainfpn_cli.sim.simulate import simulate_burst
 
     burst = simulate_burst(shape=(60, 80), n_frames=2, seed=3, moving_object=0.1)
     H = burst.homographies[1]

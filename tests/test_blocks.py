@@ -2,11 +2,11 @@ import numpy as np
 import pytest
 
 from gainfpn_cli import metrics
-from gainfpn_cli.blocks import solve_paper
+from gainfpn_cli.solve.blocks import solve_paper
 from gainfpn_cli.errors import EstimationError
-from gainfpn_cli.motion import positions_from_homography
-from gainfpn_cli.simulate import PRESETS, Shake, simulate_burst, with_overrides
-from gainfpn_cli.solver import SolveOptions
+from gainfpn_cli.geometry.warps import positions_from_homography
+from gainfpn_cli.sim.simulate import PRESETS, Shake, simulate_burst, with_overrides
+from gainfpn_cli.solve.kkt import SolveOptions
 
 NOISELESS = with_overrides(PRESETS["paper"], read_noise_e=0.0, shot_noise=False, adc_bits=16)
 
@@ -113,7 +113,7 @@ def test_sparse_path_gives_the_dense_answer(monkeypatch):
     burst, frames = _flat_burst(shape=(24, 28))
     options = SolveOptions(max_condition=1e12)
     dense = solve_paper(frames, _positions(burst), block_size=64, options=options, workers=1)
-    monkeypatch.setattr("gainfpn_cli.blocks.DENSE_MAX", 100)
+    monkeypatch.setattr("gainfpn_cli.solve.blocks.DENSE_MAX", 100)
     sparse = solve_paper(frames, _positions(burst), block_size=64, options=options, workers=1)
     assert dense.stats["regularised"] == sparse.stats["regularised"] == 0
     np.testing.assert_allclose(sparse.k, dense.k, rtol=1e-7)

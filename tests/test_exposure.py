@@ -9,9 +9,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gainfpn_cli.accurate import AccurateOptions, solve_accurate
-from gainfpn_cli.exposure import SIGNIFICANCE, relative_exposures, significant
-from gainfpn_cli.simulate import simulate_burst
+from gainfpn_cli.solve.accurate import AccurateOptions, solve_accurate
+from gainfpn_cli.motion.exposure import SIGNIFICANCE, relative_exposures, significant
+from gainfpn_cli.sim.simulate import simulate_burst
 from helpers import _residual, _run
 
 SHAPE = (120, 160)

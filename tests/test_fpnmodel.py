@@ -2,9 +2,9 @@ import numpy as np
 import pytest
 
 from gainfpn_cli import metrics
-from gainfpn_cli.accurate import solve_accurate
-from gainfpn_cli.fpnmodel import MODELS, pixel_prior_variance, select_model, structured_parts
-from gainfpn_cli.simulate import PRESETS, simulate_burst, with_overrides
+from gainfpn_cli.solve.accurate import solve_accurate
+from gainfpn_cli.solve.fpnmodel import MODELS, pixel_prior_variance, select_model, structured_parts
+from gainfpn_cli.sim.simulate import PRESETS, simulate_burst, with_overrides
 
 SIGMA = 0.005  # standard error of every synthetic k
 

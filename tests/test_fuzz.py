@@ -15,7 +15,7 @@ import yaml
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
-from gainfpn_cli import io
+from gainfpn_cli import files as io
 from gainfpn_cli.config import Config, parse_config
 from gainfpn_cli.errors import ConfigError, InputError
 

@@ -15,8 +15,8 @@ import pytest
 
 from gainfpn_cli.config import load_config
 from gainfpn_cli.pipeline import estimate, load_burst
-from gainfpn_cli.simulate import PRESETS, simulate_burst
-from gainfpn_cli.truth import save_burst
+from gainfpn_cli.sim.simulate import PRESETS, simulate_burst
+from gainfpn_cli.sim.truth import save_burst
 
 GOLDEN = Path(__file__).parent / "golden"
 #: The bursts: 6 frames each, seeded; the RGGB one is a 12-bit DNG, so RAW reading, the green

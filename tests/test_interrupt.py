@@ -14,8 +14,8 @@ from pathlib import Path
 
 import pytest
 
-from gainfpn_cli.simulate import simulate_burst
-from gainfpn_cli.truth import save_burst
+from gainfpn_cli.sim.simulate import simulate_burst
+from gainfpn_cli.sim.truth import save_burst
 
 pytestmark = pytest.mark.skipif(not Path("/proc").is_dir(), reason="finds worker processes through /proc")
 
@@ -26,6 +26,7 @@ DRIVER = textwrap.dedent(
     import sys, time
     from pathlib import Path
     import gainfpn_cli.pipeline as pipeline
+    import gainfpn_cli.outputs as outputs
     from gainfpn_cli.cli import main
 
     stage, ready = sys.argv[1], Path(sys.argv[2])
@@ -36,13 +37,13 @@ DRIVER = textwrap.dedent(
             return solve(*args, **kwargs)
         pipeline._solve_planes = announced
     else:
-        write = pipeline.write_exr
+        write = outputs.write_exr
         def slow(path, *args, **kwargs):
             write(path, *args, **kwargs)
             if "corrected" in str(path):
                 ready.touch()
                 time.sleep(60)
-        pipeline.write_exr = slow
+        outputs.write_exr = slow
     main(sys.argv[3:])
     """
 )

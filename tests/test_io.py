@@ -7,7 +7,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from gainfpn_cli import io
+from gainfpn_cli import files as io
 from gainfpn_cli.errors import InputError
 from helpers import _write_raw_exr
 

@@ -5,15 +5,12 @@ import pytest
 
 from gainfpn_cli.config import load_config
 from gainfpn_cli.errors import EstimationError
-from gainfpn_cli.motion import (
-    estimate_motion,
-    moving_masks,
-    positions_from_flow,
-    positions_from_homography,
-    trajectory_rms,
-)
-from gainfpn_cli.pipeline import LoadedBurst, estimate
-from gainfpn_cli.simulate import Shake, simulate_burst
+from gainfpn_cli.motion.estimate import estimate_motion
+from gainfpn_cli.motion.masks import moving_masks
+from gainfpn_cli.geometry.warps import positions_from_flow, positions_from_homography, trajectory_rms
+from gainfpn_cli.burst import LoadedBurst
+from gainfpn_cli.pipeline import estimate
+from gainfpn_cli.sim.simulate import Shake, simulate_burst
 
 SHAPE = (200, 260)
 
@@ -88,7 +85,7 @@ def test_a_moving_object_does_not_move_the_global_warp(seed, shake, limit):
 
 
 def test_the_dominant_motion_is_the_one_that_spans_the_frame():
-    from gainfpn_cli.motion import coverage, fit_models
+    from gainfpn_cli.motion.fit import coverage, fit_models
 
     rng = np.random.default_rng(0)
     spread = rng.uniform([0, 0], [320, 240], (150, 2))  # a soft background: fewer corners, tracked less well
@@ -121,7 +118,7 @@ def test_an_object_does_not_take_or_pull_the_warp_on_large_frames(seed, shake):
 
 
 def test_no_corner_is_taken_where_told_to_ignore():
-    from gainfpn_cli.motion import find_corners, tracking_image
+    from gainfpn_cli.motion.track import find_corners, tracking_image
 
     burst = simulate_burst(shape=SHAPE, n_frames=1, seed=3, scene="dead-leaves")
     frame = burst.frames[0].astype(np.float32)
@@ -245,7 +242,7 @@ def test_moving_masks_at_reduced_resolution():
     # factor 2 on 240x320 (seed 4, worst frame): textured object 99.4 %,
     # object 95 %, rest flagged 4.1 %, 0.05 % of a burst without object (full
     # size: 99.4 %, 95 %, 4.0 %, 0.6 %)
-    from gainfpn_cli.motion import MASK_PIXELS, mask_factor
+    from gainfpn_cli.motion.masks import MASK_PIXELS, mask_factor
 
     assert mask_factor((240, 320)) == 1 and mask_factor((3000, 4000)) == 3
     assert mask_factor((1, MASK_PIXELS)) == 1 and mask_factor((1, MASK_PIXELS + 1)) == 2
@@ -259,8 +256,8 @@ def test_moving_masks_at_reduced_resolution():
 
 
 def test_coarse_shift_of_a_large_frame_is_measured_reduced():
-    from gainfpn_cli.motion import COARSE_PIXELS, coarse_shift
-    from gainfpn_cli.simulate import procedural_scene
+    from gainfpn_cli.motion.track import COARSE_PIXELS, coarse_shift
+    from gainfpn_cli.sim.simulate import procedural_scene
 
     scene = procedural_scene((1300, 1700), np.random.default_rng(0))
     ref = scene[40:1240, 40:1640]  # 1.9 MP: phase correlation runs halved
@@ -315,7 +312,7 @@ def _layer_errors(burst, result):
     by more than 0.1 px."""
     import cv2
 
-    from gainfpn_cli.trajectory import NOWHERE
+    from gainfpn_cli.geometry.warps import NOWHERE
 
     obj = burst.moving[0].astype(np.uint8)
     regions = (cv2.dilate(obj, np.ones((7, 7), np.uint8)) == 0, cv2.erode(obj, np.ones((7, 7), np.uint8)) > 0)

@@ -5,13 +5,14 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from gainfpn_cli import io, metrics
+from gainfpn_cli import files as io, metrics
 from gainfpn_cli.cli import main
 from gainfpn_cli.config import Config, load_config
 from gainfpn_cli.outdir import MANIFEST
-from gainfpn_cli.pipeline import estimate, load_burst, write_estimate
-from gainfpn_cli.simulate import Shake, simulate_burst
-from gainfpn_cli.truth import save_burst
+from gainfpn_cli.outputs import write_estimate
+from gainfpn_cli.pipeline import estimate, load_burst
+from gainfpn_cli.sim.simulate import Shake, simulate_burst
+from gainfpn_cli.sim.truth import save_burst
 
 
 @pytest.fixture(scope="module")
@@ -251,7 +252,7 @@ def test_colour_channels_and_a_later_reference_share_the_masks_and_the_solve():
     # residual, as reference 0
     from pathlib import Path
 
-    from gainfpn_cli.pipeline import LoadedBurst
+    from gainfpn_cli.burst import LoadedBurst
 
     burst = simulate_burst(shape=(120, 160), n_frames=6, seed=3, moving_object=0.1)
     grey = burst.frames.astype(np.float32) - burst.sensor.black_level

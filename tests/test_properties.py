@@ -16,8 +16,8 @@ from hypothesis import strategies as st
 
 from gainfpn_cli.cli import main
 from gainfpn_cli.errors import EstimationError
-from gainfpn_cli.simulate import PRESETS, Shake, simulate_burst, with_overrides
-from gainfpn_cli.truth import save_burst
+from gainfpn_cli.sim.simulate import PRESETS, Shake, simulate_burst, with_overrides
+from gainfpn_cli.sim.truth import save_burst
 from helpers import _burst, _run
 
 

@@ -154,7 +154,7 @@ def test_batch_refuses_an_out_that_holds_a_burst_and_a_folder_it_did_not_write(s
 
 
 def test_bench_overwrite_keeps_other_files(tmp_path, monkeypatch):
-    from gainfpn_cli import bench
+    from gainfpn_cli.tools import bench
 
     def fake_run(folder, **kwargs):  # the bench's points are measured elsewhere; here only its outputs matter
         (Path(folder) / "results.md").write_text("| point |\n")

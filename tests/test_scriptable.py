@@ -15,7 +15,7 @@ from click.testing import CliRunner
 
 from gainfpn_cli import pipeline
 from gainfpn_cli.cli import main
-from gainfpn_cli.io import read_frame, write_exr
+from gainfpn_cli.files import read_frame, write_exr
 from gainfpn_cli.summary import EXIT_REJECTED
 
 SMALL = ["--size", "96x72", "--frames", "5", "-q"]
@@ -122,7 +122,7 @@ def test_the_summary_rounds_each_column_the_same_way(tmp_path, sim):
     manifest = tmp_path / "m.yaml"
     manifest.write_text(f"bursts:\n  - {{name: a, inputs: {sim}}}\n")
     _run("batch", manifest, "-o", tmp_path / "out", "-q")
-    from gainfpn_cli.batch import COLUMNS
+    from gainfpn_cli.tools.batch import COLUMNS
 
     header, line = (tmp_path / "out" / "summary.csv").read_text().splitlines()
     for column, value in zip(header.split(","), line.split(",")):
@@ -168,7 +168,7 @@ def test_json_records_say_what_a_pipeline_needs(sim, estimated, tmp_path):
 
 
 def test_strict_makes_a_rejected_estimate_exit_with_its_own_status(sim, tmp_path, monkeypatch):
-    monkeypatch.setattr(pipeline, "_holdout_ratio", lambda *args, **kwargs: 1.5)  # the held-out frame says no
+    monkeypatch.setattr(pipeline, "holdout_ratio", lambda *args, **kwargs: 1.5)  # the held-out frame says no
     lenient = _run("estimate", sim, "-o", tmp_path / "a", "--workers", "1", "--json")
     assert json.loads(lenient.stdout)["status"] == "rejected"
     strict = _run("estimate", sim, "-o", tmp_path / "b", "--workers", "1", "--strict", "-q", ok=False)
@@ -206,7 +206,7 @@ def test_the_paper_preset_works(sim, tmp_path):
 
 
 def test_a_glob_skips_other_files_as_a_directory_does(sim, tmp_path):
-    from gainfpn_cli.io import find_frames
+    from gainfpn_cli.files import find_frames
 
     (tmp_path / "b").mkdir()
     for p in sim.glob("frame_*.exr"):
@@ -233,7 +233,7 @@ def test_progress_bars_only_on_a_terminal(monkeypatch):
 
 def test_messages_never_show_python_none(tmp_path):
     from gainfpn_cli.errors import InputError
-    from gainfpn_cli.io import check_consistent
+    from gainfpn_cli.files import check_consistent
 
     write_exr(tmp_path / "a.exr", {"Y": np.zeros((30, 30), np.float32)})
     write_exr(tmp_path / "b.exr", {"Y": np.zeros((30, 30), np.float32)}, metadata={"gainfpn:saturation": 200.0})

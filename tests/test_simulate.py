@@ -4,9 +4,9 @@ import json
 import numpy as np
 import pytest
 
-from gainfpn_cli import io
-from gainfpn_cli.simulate import PRESETS, Shake, dead_leaves, procedural_scene, render, simulate_burst, with_overrides
-from gainfpn_cli.truth import load_truth, save_burst
+from gainfpn_cli import files as io
+from gainfpn_cli.sim.simulate import PRESETS, Shake, dead_leaves, procedural_scene, render, simulate_burst, with_overrides
+from gainfpn_cli.sim.truth import load_truth, save_burst
 
 PAPER = PRESETS["paper"]
 STILL = Shake(translation_px=0.0, rotation_deg=0.0)
@@ -169,7 +169,7 @@ def test_wave_truth_positions_match_the_rendered_frames(shake):
     # a rolling-shutter wobble or a 2-D distortion: no single warp explains it, Burst.positions does
     import cv2
 
-    from gainfpn_cli.motion import positions_from_homography
+    from gainfpn_cli.geometry.warps import positions_from_homography
 
     shape = (120, 160)
     burst = simulate_burst(shape=shape, n_frames=3, seed=4, shake=shake, scene="procedural")

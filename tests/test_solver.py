@@ -5,7 +5,7 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from gainfpn_cli.errors import EstimationError
-from gainfpn_cli.solver import OK, REGULARISED, UNESTIMATED, _solve_gauged, solve_block
+from gainfpn_cli.solve.kkt import OK, REGULARISED, UNESTIMATED, _solve_gauged, solve_block
 
 # METHOD.md section 2, paper Fig. 2: integer displacements, n_B = 4, F = 2, n_R = 6
 I0 = [131.1, 153, 135, 97]

@@ -13,9 +13,9 @@ import numpy as np
 from click.testing import CliRunner
 
 from gainfpn_cli.cli import main
-from gainfpn_cli.io import read_exr_planes
-from gainfpn_cli.simulate import simulate_burst
-from gainfpn_cli.truth import save_burst
+from gainfpn_cli.files import read_exr_planes
+from gainfpn_cli.sim.simulate import simulate_burst
+from gainfpn_cli.sim.truth import save_burst
 
 CALLER = textwrap.dedent(
     """

@@ -5,9 +5,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from gainfpn_cli.fieldfit import FIELD_CELLS, fit_field
-from gainfpn_cli.trajectory import FieldWarp, GlobalWarp, as_warp, field_at
-from gainfpn_cli.warp import positions, sample
+from gainfpn_cli.motion.fields import FIELD_CELLS, fit_field
+from gainfpn_cli.geometry.warps import FieldWarp, GlobalWarp, as_warp, field_at
+from gainfpn_cli.geometry.resample import positions, sample
 
 SHAPE = (240, 320)
 
@@ -22,7 +22,7 @@ def _homography(tx, ty, angle_deg=0.0, persp=0.0):
 def _field_warp(model: str, amplitude: float, seed: int = 0) -> FieldWarp:
     """Two frames besides the reference, each with a field as rough as the model is meant to follow:
     a rolling wobble of 3 periods down the rows, or a mesh wave of 1.5 periods across the frame."""
-    from gainfpn_cli.fieldfit import design
+    from gainfpn_cli.motion.fields import design
 
     rng = np.random.default_rng(seed)
     cells = FIELD_CELLS[model]
@@ -151,7 +151,7 @@ def test_fit_field_recovers_a_field_and_ignores_a_moving_cluster(model):
 def _two_layers():
     """A background moving (+2, 0) and a block x >= 39.5 of a 60x80 frame moving (-3, +1) in frame 1,
     over the background; labelled on a grid of half the frame's resolution."""
-    from gainfpn_cli.trajectory import NO_LAYER, LayeredWarp
+    from gainfpn_cli.geometry.warps import NO_LAYER, LayeredWarp
 
     shift = lambda dx, dy: np.array([[1.0, 0, dx], [0, 1.0, dy], [0, 0, 1.0]])  # noqa: E731
     layers = np.array([[np.eye(3), np.eye(3)], [shift(2, 0), shift(-3, 1)]])
@@ -164,7 +164,7 @@ def _two_layers():
 
 
 def test_a_layered_warp_moves_each_pixel_with_its_layer_and_occluded_ones_nowhere():
-    from gainfpn_cli.trajectory import NOWHERE
+    from gainfpn_cli.geometry.warps import NOWHERE
 
     warp = _two_layers()
     moved = warp.map_points(0, 1, np.array([[20.0, 7.0], [50.0, 7.0], [37.0, 7.0], [8.0, 7.0]]))
@@ -178,7 +178,7 @@ def test_a_layered_warp_moves_each_pixel_with_its_layer_and_occluded_ones_nowher
 
 
 def test_a_layered_warp_pair_conjugate_and_select_agree_with_its_points():
-    from gainfpn_cli.trajectory import NOWHERE
+    from gainfpn_cli.geometry.warps import NOWHERE
 
     warp = _two_layers()
     region = (3, 30, 5, 20)  # (y0, x0, h, w)
@@ -199,8 +199,8 @@ def test_bounded_maps_sample_alike_where_the_samples_are_valid():
     # NOWHERE positions are brought to just outside the source (OpenCV's
     # reflecting border walked to -1e5 one reflection at a time: a layered
     # solve of 120x160x6 took 4.5 s, now 0.4 s, with the same k)
-    from gainfpn_cli.trajectory import NOWHERE
-    from gainfpn_cli.warp import bounded, sample, valid_samples
+    from gainfpn_cli.geometry.warps import NOWHERE
+    from gainfpn_cli.geometry.resample import bounded, sample, valid_samples
 
     rng = np.random.default_rng(0)
     image = rng.uniform(1, 2, (30, 40)).astype(np.float32)

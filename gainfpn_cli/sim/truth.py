@@ -18,10 +18,11 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from . import __version__
-from .errors import InputError
-from .io import ATTR_CFA, ATTR_SATURATION, read_exr_planes, write_dng, write_exr, write_text
-from .simulate import Burst, Sensor
+from .. import __version__
+from ..errors import InputError
+from ..outdir import OutputPlan, prepare, staged
+from ..files import ATTR_CFA, ATTR_SATURATION, read_exr_planes, read_scene, write_dng, write_exr, write_text
+from .simulate import Burst, Sensor, simulate_burst
 
 FORMATS = ("exr", "dng")
 
@@ -118,7 +119,7 @@ def residual_bound_percent(truth: Truth, mask: np.ndarray, n_frames: int) -> flo
     estimate from ``n_frames`` frames of this simulation can go on average over ``mask``:
     :func:`metrics.gain_bound` with the simulated sensor's noise and its pixel FPN as the prior,
     every frame as bright as the ideal frame 0. None if the parameters do not give the sensor."""
-    from .metrics import gain_bound, mixture_spread
+    from ..metrics import gain_bound, mixture_spread
 
     try:
         sensor = Sensor(**truth.parameters["sensor"])
@@ -127,3 +128,22 @@ def residual_bound_percent(truth: Truth, mask: np.ndarray, n_frames: int) -> flo
     sigma = gain_bound(truth.ideal[mask] / sensor.dn_per_e, n_frames=n_frames, read_noise_e=sensor.read_noise_e,
                        dn_per_e=sensor.dn_per_e, shot_noise=sensor.shot_noise, prior=sensor.fpn_pixel)
     return 100.0 * mixture_spread(sigma)
+
+
+def simulate_to(out_dir: Path, *, fmt: str, overwrite: bool = False, scene: str | Path = "procedural",
+                parameters: dict | None = None, **burst_options) -> tuple[list[Path], OutputPlan]:
+    """Simulate a burst (see :func:`simulate.simulate_burst`) and save it, all or nothing; return the
+    frames written and the output plan.
+
+    ``scene`` is a built-in scene's name or the path of an image.
+    """
+    check_format(burst_options["sensor"], fmt)
+    names = [f"frame_{t:03d}.{fmt}" for t in range(burst_options["n_frames"])] + ["truth"]
+    plan = prepare(out_dir, command="simulate", names=names, inputs=[scene] if isinstance(scene, Path) else [],
+                   overwrite=overwrite)
+    if isinstance(scene, Path):
+        scene = read_scene(scene)
+    burst = simulate_burst(scene=scene, **burst_options)
+    with staged(plan) as tmp:
+        paths = save_burst(burst, tmp, fmt=fmt, parameters=parameters)
+    return [out_dir / p.relative_to(tmp) for p in paths], plan

@@ -13,40 +13,19 @@ count.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
 
-from .errors import EstimationError
-from .parallel import map_ordered
-from .solver import DENSE_MAX, OK, REGULARISED, UNESTIMATED, SolveOptions, _solve_gauged
+from ..errors import EstimationError
+from ..parallel import map_ordered
+from .result import GainResult
+from .kkt import DENSE_MAX, OK, REGULARISED, UNESTIMATED, SolveOptions, _solve_gauged
 
 #: A frame whose RMS displacement from the reference is below this (px) adds
 #: no information about k: it is left out and counted.
 STATIC_RMS_PX = 0.01
-
-
-@dataclass(frozen=True)
-class GainResult:
-    """Gain map of one plane and how it was obtained.
-
-    Attributes
-    ----------
-    k : ndarray of float32, shape (H, W)
-        Correction (multiply to correct); 1.0 where unestimated; mean 1 over
-        estimated pixels.
-    confidence : ndarray of float32, shape (H, W)
-        1 where solved cleanly, 0.5 where the block needed extra
-        regularisation, 0 where unestimated.
-    stats : dict
-        ``blocks``, ``regularised``, ``unestimated_blocks``,
-        ``unestimated_pixels``, ``static_frames``, ``rows``.
-    """
-
-    k: np.ndarray
-    confidence: np.ndarray
-    stats: dict = field(default_factory=dict)
 
 
 @dataclass(frozen=True)

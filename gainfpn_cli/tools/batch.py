@@ -24,8 +24,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-from .errors import ConfigError, GainFPNError, InputError
-from .outdir import remove_staging
+from ..errors import ConfigError, GainFPNError, InputError
+from ..outdir import remove_staging
 
 #: Columns of summary.csv (summary.json holds the same rows) and the decimals each number is rounded to.
 COLUMNS = {"name": None, "status": None, "earlier": None, "frames": None, "motion_model": None, "fpn_models": None,
@@ -60,7 +60,7 @@ def load_manifest(path: str | os.PathLike) -> list[Job]:
     ``inputs`` is a path, a glob or a list of them; it and ``config`` are
     relative to the manifest's folder. Errors name the manifest and the key.
     """
-    from .config import load_yaml
+    from ..config import load_yaml
 
     path = Path(path)
     try:
@@ -103,7 +103,7 @@ def load_manifest(path: str | os.PathLike) -> list[Job]:
 
 def job_config(job: Job, defaults: Defaults = Defaults(), *, solver_workers: int | None = None):
     """The burst's effective config: defaults < ``--preset`` < ``-c`` < the burst's own config."""
-    from .config import load_config, parse_config
+    from ..config import load_config, parse_config
 
     cfg = load_config(defaults.config, preset=defaults.preset)
     if job.config is not None:
@@ -126,8 +126,8 @@ def _with_workers(cfg, workers: int):
 def stored_report(folder: Path, job: Job, cfg) -> dict | None:
     """The report of ``folder``'s result if it was made from the job's inputs as they are now (paths,
     sizes, modification times) with the effective config ``cfg``; else None (run it again)."""
-    from .config import config_dict
-    from .io import FileStamp, find_frames, stamp
+    from ..config import config_dict
+    from ..files import FileStamp, find_frames, stamp
 
     try:
         report = json.loads((folder / "report.json").read_text(encoding="utf-8"))
@@ -153,7 +153,8 @@ def run_burst(job: Job, out: str | os.PathLike, *, defaults: Defaults = Defaults
     run again unless ``overwrite``. Errors of the burst itself (input, config, estimation) make a
     ``failed`` row; only an interrupt or a bug raises.
     """
-    from .pipeline import estimate, load_burst, write_estimate
+    from ..outputs import write_estimate
+    from ..pipeline import estimate, load_burst
 
     folder = Path(out) / job.name
     t0 = time.perf_counter()
@@ -175,7 +176,7 @@ def _failed(name: str, message: str) -> dict:
 
 
 def _row(name: str, report: dict, seconds: float) -> dict:
-    from .summary import exposure_spread_percent, fpn_models
+    from ..summary import exposure_spread_percent, fpn_models
 
     prnu = report["prnu_percent"]
     row = {
@@ -203,8 +204,8 @@ def batch_plan(jobs: list[Job], out: Path, *, overwrite: bool = False, manifest:
                defaults: Defaults = Defaults()):
     """Check ``out`` before any work (:func:`outdir.prepare`): it must not hold any burst's inputs or
     configs, and a burst's folder there that an earlier batch did not write needs ``overwrite``."""
-    from .io import find_frames
-    from .outdir import prepare, read_manifest
+    from ..files import find_frames
+    from ..outdir import prepare, read_manifest
 
     inputs = [p for p in (manifest, defaults.config) if p is not None]
     for job in jobs:
@@ -229,7 +230,7 @@ def run_batch(jobs: list[Job], out: str | os.PathLike, *, client=None, defaults:
     Returns the summary rows in manifest order (and writes them to ``out/summary.json`` and
     ``out/summary.csv``) and the output plan. ``progress(row)`` is called as each burst ends.
     """
-    from .outdir import record
+    from ..outdir import record
 
     out = Path(out)
     plan = batch_plan(jobs, out, overwrite=overwrite, manifest=manifest, defaults=defaults)
@@ -283,7 +284,7 @@ def _on_cluster(client, jobs: list[Job], out: Path, done, options: dict) -> list
 
 def write_summary(rows: list[dict], out: Path) -> None:
     """``summary.json`` and ``summary.csv`` in ``out``, each written atomically."""
-    from .io import write_text
+    from ..files import write_text
 
     write_text(out / "summary.json", json.dumps(rows, indent=1))
     text = _io.StringIO()
@@ -297,7 +298,7 @@ def local_cluster(n_workers: int):
     """A Dask client on a cluster of ``n_workers`` local processes on loopback, one thread each and
     their native libraries single-threaded (as :mod:`parallel`'s workers: results are bit-identical)."""
     distributed = import_distributed()
-    from .parallel import single_threaded_children
+    from ..parallel import single_threaded_children
 
     with single_threaded_children():  # the nannies inherit it, and pass it on to the workers they restart
         cluster = distributed.LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,

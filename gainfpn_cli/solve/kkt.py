@@ -27,7 +27,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.linalg import lapack
 
-from .errors import EstimationError
+from ..errors import EstimationError
 
 log = logging.getLogger(__name__)
 

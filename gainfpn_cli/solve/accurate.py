@@ -35,23 +35,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .blocks import GainResult
-from .errors import EstimationError
-from .parallel import map_ordered
-from .trajectory import FieldWarp, GlobalWarp, as_warp
-from .warp import KERNELS, bounded, low_pass, positions, sample, valid_samples
-
-#: Predicted standard error of k at which confidence is 0.5.
-CONFIDENCE_SCALE = 0.01
-
-
-def sigma_from_confidence(confidence: np.ndarray) -> np.ndarray:
-    """Invert ``confidence = 1 / (1 + (sigma_k / CONFIDENCE_SCALE)^2)``: inf where confidence is 0."""
-    confidence = np.asarray(confidence)
-    dtype = np.float32 if confidence.dtype == np.float32 else np.float64  # float32 maps stay float32
-    ratio = np.divide(dtype(1), confidence, out=np.full(confidence.shape, np.inf, dtype), where=confidence > 0)
-    return dtype(CONFIDENCE_SCALE) * np.sqrt(ratio - dtype(1))
-
+from .result import CONFIDENCE_SCALE, GainResult
+from ..errors import EstimationError
+from ..parallel import map_ordered
+from ..geometry.warps import FieldWarp, GlobalWarp, as_warp
+from ..geometry.resample import KERNELS, bounded, low_pass, positions, sample, valid_samples
 
 @dataclass(frozen=True)
 class AccurateOptions:

@@ -120,7 +120,7 @@ class Burst:
 
     def positions(self, t: int) -> np.ndarray:
         """Where frame t sees every reference pixel: ``(H, W, 2)`` float64 ``(x, y)``, waves included."""
-        from .motion import positions_from_homography
+        from ..geometry.warps import positions_from_homography
 
         pos = positions_from_homography(self.homographies[t], self.frames.shape[1:])
         if self.waves is None or not np.any(self.waves[t, :, 1]):
@@ -132,7 +132,7 @@ class Burst:
 
     def object_positions(self, t: int) -> np.ndarray:
         """Where frame t sees every reference pixel if it were on the moving object: ``H_t (p + o_t)``."""
-        from .motion import positions_from_homography
+        from ..geometry.warps import positions_from_homography
 
         T = np.eye(3)
         T[:2, 2] = self.object_offsets[t]

@@ -330,3 +330,46 @@ def as_warp(motion) -> GlobalWarp | FieldWarp | LayeredWarp:
     if H.ndim != 3 or H.shape[1:] != (3, 3) or not np.all(np.isfinite(H)):
         raise ValueError(f"homographies must be finite with shape (F, 3, 3), got {H.shape}")
     return GlobalWarp(H)
+
+
+def positions_from_homography(H: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Position in frame t of every reference pixel, for ``H = H_t_ref``.
+
+    Returns
+    -------
+    ndarray of float64, shape (H, W, 2)
+        ``[..., 0]`` = x, ``[..., 1]`` = y in frame t's pixel coordinates.
+    """
+    H = np.asarray(H, dtype=np.float64)
+    if H.shape != (3, 3) or not np.all(np.isfinite(H)):
+        raise ValueError(f"H must be a finite 3x3 matrix, got shape {H.shape}")
+    h, w = shape
+    ys, xs = np.arange(h, dtype=np.float64)[:, None], np.arange(w, dtype=np.float64)[None, :]  # broadcast, no grids
+    den = (H[2, 0] * xs + H[2, 2]) + H[2, 1] * ys
+    out = np.empty((h, w, 2))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        np.divide((H[0, 0] * xs + H[0, 2]) + H[0, 1] * ys, den, out=out[..., 0])
+        np.divide((H[1, 0] * xs + H[1, 2]) + H[1, 1] * ys, den, out=out[..., 1])
+    out[~np.isfinite(out)] = np.nan  # points sent to infinity have no position
+    return out
+
+
+def positions_from_flow(flow_xy: np.ndarray) -> np.ndarray:
+    """Position in the moving frame of every reference pixel: ``p + flow``."""
+    flow_xy = np.asarray(flow_xy, dtype=np.float64)
+    if flow_xy.ndim != 3 or flow_xy.shape[2] != 2:
+        raise ValueError(f"flow_xy must have shape (H, W, 2), got {flow_xy.shape}")
+    h, w = flow_xy.shape[:2]
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
+    return np.stack([xs + flow_xy[..., 0], ys + flow_xy[..., 1]], axis=-1)
+
+
+
+
+def trajectory_rms(H_est: np.ndarray, H_true: np.ndarray, shape: tuple[int, int], step: int = 4) -> float:
+    """RMS distance (px) between where two homographies send the reference's pixels."""
+    h, w = shape
+    ys, xs = np.mgrid[0:h:step, 0:w:step].astype(np.float64)
+    p = np.stack([xs.ravel(), ys.ravel(), np.ones(xs.size)])
+    a, b = H_est @ p, H_true @ p
+    return float(np.sqrt(np.mean(np.sum((a[:2] / a[2] - b[:2] / b[2]) ** 2, axis=0))))

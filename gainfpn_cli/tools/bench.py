@@ -199,14 +199,14 @@ def run(out_dir: Path, *, quick: bool, groups: tuple[str, ...] = (), progress=No
 
 def _sensor(spec: BurstSpec):
     """The bench sensor; with column FPN, 3 % pixel + the column part (METHOD.md section 4's second case)."""
-    from .simulate import PRESETS, with_overrides
+    from ..sim.simulate import PRESETS, with_overrides
 
     return with_overrides(PRESETS[spec.sensor], fpn_pixel=0.03 if spec.fpn_column else None,
                           fpn_column=spec.fpn_column or None)
 
 
 def _make_burst(spec: BurstSpec, folder: Path) -> None:
-    from .truth import save_burst
+    from ..sim.truth import save_burst
 
     burst = _simulate(spec, spec.seed)
     sensor = burst.sensor
@@ -216,7 +216,7 @@ def _make_burst(spec: BurstSpec, folder: Path) -> None:
 
 def _simulate(spec: BurstSpec, seed: int):
     """The burst ``spec`` describes, drawn with ``seed`` (a motion point draws several)."""
-    from .simulate import Shake, simulate_burst
+    from ..sim.simulate import Shake, simulate_burst
 
     shake = Shake(wobble_px=spec.wobble_px, distortion_px=spec.distortion_px, **MOTIONS[spec.motion])
     return simulate_burst(shape=spec.shape, n_frames=spec.n_frames, seed=seed, scene=spec.scene,
@@ -286,7 +286,7 @@ class _TreePeak:
 
 
 def _measure(point: Point, scratch: Path) -> dict:
-    from .truth import load_truth
+    from ..sim.truth import load_truth
 
     folder = scratch / point.burst.key
     row = {"group": point.group, "label": point.label, "kind": point.kind, "preset": point.preset,
@@ -311,8 +311,10 @@ def _measure(point: Point, scratch: Path) -> dict:
 
 
 def _pipeline(point: Point, folder: Path, out: Path) -> dict:
-    from .config import load_config
-    from .pipeline import estimate, evaluate, load_burst, write_estimate
+    from ..config import load_config
+    from ..outputs import write_estimate
+    from ..pipeline import estimate, load_burst
+    from ..sim.evaluate import evaluate
 
     cfg = load_config(preset=point.preset, overrides=point.overrides)
     t0 = time.perf_counter()
@@ -323,7 +325,7 @@ def _pipeline(point: Point, folder: Path, out: Path) -> dict:
     total = time.perf_counter() - t0
     holdout = result.report["holdout"] or {}
     if holdout.get("passed") is False:  # the tool wrote k = 1: score what a user gets, no correction
-        from .truth import load_truth
+        from ..sim.truth import load_truth
 
         scores = _scores(np.ones(result.k.shape[:2], np.float32), folder, load_truth(folder))
     else:
@@ -335,9 +337,9 @@ def _pipeline(point: Point, folder: Path, out: Path) -> dict:
 
 
 def _scores(k: np.ndarray, folder: Path, truth) -> dict:
-    """:func:`pipeline.scores` of a gain map that covers every pixel."""
-    from .io import find_frames, read_frame
-    from .pipeline import scores
+    """:func:`sim.evaluate.scores` of a gain map that covers every pixel."""
+    from ..files import find_frames, read_frame
+    from ..sim.evaluate import scores
 
     frame0 = read_frame(find_frames([folder])[0]).data[..., 0]
     return scores(np.asarray(k, np.float32), np.ones(frame0.shape, bool), frame0, truth)
@@ -345,7 +347,7 @@ def _scores(k: np.ndarray, folder: Path, truth) -> dict:
 
 def _flat_field_k(spec: BurstSpec) -> np.ndarray:
     """What a lab with a flat-field rig gets from as many frames: uniformly lit, averaged."""
-    from .simulate import Shake, simulate_burst
+    from ..sim.simulate import Shake, simulate_burst
 
     sensor = _sensor(spec)
     flat = simulate_burst(shape=spec.shape, n_frames=spec.n_frames, seed=spec.seed, sensor=sensor, supersample=1,
@@ -355,7 +357,7 @@ def _flat_field_k(spec: BurstSpec) -> np.ndarray:
 
 
 def _frames(folder: Path) -> tuple[np.ndarray, float]:
-    from .io import find_frames, read_frame
+    from ..files import find_frames, read_frame
 
     frames = [read_frame(p) for p in find_frames([folder])]
     return np.stack([f.data[..., 0] for f in frames]), frames[0].info.saturation
@@ -363,7 +365,7 @@ def _frames(folder: Path) -> tuple[np.ndarray, float]:
 
 def _flow_error(point: Point, folder: Path, truth) -> dict:
     """The accurate solver with the true warps, each frame's shifted by ``flow_error_px`` RMS."""
-    from .accurate import solve_accurate
+    from ..solve.accurate import solve_accurate
 
     frames, saturation = _frames(folder)
     rng = np.random.default_rng(7)
@@ -382,7 +384,7 @@ def _flow_error(point: Point, folder: Path, truth) -> dict:
 def _motion_accuracy(spec: BurstSpec, seeds: int) -> dict:
     """The first motion estimate (the default preset's) of ``seeds`` bursts like ``spec``: each
     burst's worst frame, RMS trajectory error (px) over the pixels of the background."""
-    from .motion import estimate_motion
+    from ..motion.estimate import estimate_motion
 
     worst, seconds = [], 0.0
     for seed in range(spec.seed, spec.seed + seeds):
@@ -399,7 +401,7 @@ def _motion_accuracy(spec: BurstSpec, seeds: int) -> dict:
 def background_rms(H: np.ndarray, burst, t: int) -> float:
     """RMS distance (px) between where ``H`` and the truth put the reference's pixels in frame ``t``, over
     those that see the background there (not the moving object in either frame, and inside frame t)."""
-    from .trajectory import apply_homography
+    from ..geometry.warps import apply_homography
 
     h, w = burst.frames.shape[1:]
     ys, xs = np.mgrid[0:h, 0:w]
@@ -414,8 +416,8 @@ def background_rms(H: np.ndarray, burst, t: int) -> float:
 
 
 def _workers(folder: Path) -> dict:
-    from .accurate import solve_accurate
-    from .truth import load_truth
+    from ..solve.accurate import solve_accurate
+    from ..sim.truth import load_truth
 
     import cv2
 

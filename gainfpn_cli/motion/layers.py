@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .trajectory import NO_LAYER, apply_homography
+from ..geometry.warps import NO_LAYER, apply_homography
 
 #: A layer needs this many points, and this fraction of all tracked points:
 #: fewer are a few bad tracks, not a surface.

@@ -71,7 +71,7 @@ def positions(M: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     """``M q`` for every pixel ``q`` of a ``shape`` grid: float64 ``(h, w, 2)``."""
     if M.shape != (3, 3):
         return np.asarray(M, np.float64)
-    from .motion import positions_from_homography
+    from .warps import positions_from_homography
 
     return positions_from_homography(M, shape)
 

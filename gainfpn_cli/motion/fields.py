@@ -19,7 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .trajectory import DEGREE, apply_homography, basis, field_at
+from ..geometry.warps import DEGREE, apply_homography, basis, field_at
+from ..metrics import point_noise_variance
 
 #: Cells (y, x) of each field model; x = 0: a field of the row alone.
 #: ``rolling``: a rolling shutter's per-row displacement (12 cells follow a
@@ -169,7 +170,6 @@ def joint_fit(src: np.ndarray, dst: np.ndarray, H: np.ndarray, a: np.ndarray, pe
 
 def fit_field(src: np.ndarray, dst: np.ndarray, H0: np.ndarray, shape: tuple[int, int], model: str) -> FieldFit:
     """Fit field model ``model`` (a key of FIELD_CELLS) to one frame's point pairs, from homography ``H0``."""
-    from .motion import _noise_variance
 
     cells = FIELD_CELLS[model]
     a_all = design(dst, shape, cells)
@@ -184,7 +184,7 @@ def fit_field(src: np.ndarray, dst: np.ndarray, H0: np.ndarray, shape: tuple[int
         H, coef, trace, lam = joint_fit(src[near], dst[near], H, a_all[near], penalty, shape, weights[near], lambdas)
         lambdas = [lam]
         residual = np.linalg.norm(apply_homography(H, src) + a_all @ coef - dst, axis=1)
-        sigma = np.sqrt(max(_noise_variance(residual[weights > 0.5]), 1e-10))
+        sigma = np.sqrt(max(point_noise_variance(residual[weights > 0.5]), 1e-10))
         updated = near / (1.0 + (residual / (CAUCHY * sigma)) ** 2)
         if np.max(np.abs(updated - weights)) < 0.01:
             break

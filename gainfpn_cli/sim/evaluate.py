@@ -1,0 +1,88 @@
+"""Score an estimate against the truth of the simulation it was made from."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import EstimationError, InputError
+from ..files import ATTR_CFA, find_frames, read_exr_planes, read_frame, stamp
+from ..metrics import mse, residual_fpn_percent
+from ..outputs import read_gain_map
+from .truth import load_truth, residual_bound_percent
+def evaluate(out_dir: Path, sim_dir: Path) -> dict:
+    """Residual gain FPN and the paper's MSE before/after, against a simulation's truth.
+
+    Refuses a truth that is not this estimate's: another size, CFA layout or white level
+    (bit depth), or frames whose digests differ from those the estimate recorded."""
+
+    k, attrs = read_gain_map(out_dir / "gain_map.exr")
+    planes, _ = read_exr_planes(out_dir / "gain_map.exr")
+    confidence = planes.get("confidence", np.ones(k.shape[:2], np.float32))
+    report = _read_report(out_dir)
+    truth = load_truth(sim_dir)
+    sim_paths = find_frames([sim_dir])
+    first = read_frame(sim_paths[0])
+    _check_truth(report, attrs, k, truth, first, sim_paths, out_dir, sim_dir)
+    est = confidence > 0
+    if not est.any():
+        raise EstimationError(f"{out_dir}: the gain map has no estimated pixel")
+    result = scores(k[..., 0], est, first.data[..., 0], truth)
+    n_fit = len(report["inputs"]) - (1 if report.get("holdout") else 0)  # one frame is held out to check k
+    bound = residual_bound_percent(truth, est, n_fit)
+    return {**result, "residual_bound_percent": bound, "bound_frames": n_fit}
+
+
+def _read_report(out_dir: Path) -> dict:
+    path = out_dir / "report.json"
+    try:
+        report = json.loads(path.read_text(encoding="utf-8"))
+        report["inputs"][0]["sha256"]
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read ({exc.strerror or exc}); is {out_dir} a folder written by "
+                         "`gainfpn estimate`?") from None
+    except (ValueError, KeyError, TypeError, IndexError):
+        raise InputError(f"{path}: not a report of this gainfpn version (no input digests); estimate again") from None
+    return report
+
+
+def _check_truth(report, attrs, k, truth, first, sim_paths, out_dir: Path, sim_dir: Path) -> None:
+    """Raise :class:`InputError` unless ``sim_dir`` holds the burst the estimate in ``out_dir`` was made from."""
+    h, w = truth.gain.shape
+    if (h, w) != k.shape[:2]:
+        raise InputError(f"{sim_dir}: truth is {w}x{h}, the gain map {k.shape[1]}x{k.shape[0]}: not this estimate's "
+                         "simulation")
+    sim_cfa, est_cfa = first.info.cfa or "none", attrs.get(ATTR_CFA) or "none"
+    if sim_cfa != est_cfa:
+        raise InputError(f"{sim_dir}: CFA layout {sim_cfa} differs from the estimate's ({est_cfa}): not this "
+                         "estimate's simulation")
+    sim_white, est_white = first.info.layout()[4], report.get("white_level_dn")
+    if sim_white != est_white:
+        raise InputError(f"{sim_dir}: white level {_dn(sim_white)} differs from the estimate's frames' "
+                         f"({_dn(est_white)}): another bit depth, not this estimate's simulation")
+    recorded = {Path(i["path"]).name: i["sha256"] for i in report["inputs"]}
+    for path in sim_paths:
+        if path.name in recorded and stamp(path).sha256 != recorded.pop(path.name):
+            raise InputError(f"{path}: differs from the frame {path.name} the estimate in {out_dir} was made from "
+                             "(another simulation, or frames made again)")
+    if recorded:
+        raise InputError(f"{sim_dir}: has no frame {sorted(recorded)[0]}, which the estimate in {out_dir} was made "
+                         "from: not this estimate's simulation")
+
+
+def _dn(value) -> str:
+    return "not stated" if value is None else f"{value:g} DN"
+
+
+def scores(k: np.ndarray, est: np.ndarray, frame0: np.ndarray, truth) -> dict:
+    """Residual gain FPN and the paper's MSE of frame 0 before/after ``k``, over the pixels ``est``."""
+    return {
+        "estimated_percent": 100.0 * float(est.mean()),
+        "input_fpn_percent": residual_fpn_percent(np.ones_like(k), truth.gain, est),
+        "residual_fpn_percent": residual_fpn_percent(k, truth.gain, est),
+        "mse_before": mse(frame0, truth.ideal, est),
+        "mse_after": mse(k * frame0, truth.ideal, est),
+        "mse_floor": mse(frame0 / truth.gain, truth.ideal, est),
+    }

@@ -1,0 +1,67 @@
+"""What a solver hands on: a plane's k and confidence, and the rules every solver's result obeys.
+
+``confidence`` means one thing: ``1 / (1 + (sigma_k / CONFIDENCE_SCALE)^2)`` for the accurate
+solver, whose ``sigma_k`` is a predicted standard error; the paper's block solver, which has
+none, gives 1 (solved cleanly), 0.5 (extra regularisation) or 0. Either way 0 is unestimated
+(k = 1). :func:`physical` is the one clamp of k to the gain range with the gauge kept.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class GainResult:
+    """Gain map of one plane and how it was obtained.
+
+    Attributes
+    ----------
+    k : ndarray of float32, shape (H, W)
+        Correction (multiply to correct); 1.0 where unestimated; mean 1 over
+        estimated pixels.
+    confidence : ndarray of float32, shape (H, W)
+        1 where solved cleanly, 0.5 where the block needed extra
+        regularisation, 0 where unestimated.
+    stats : dict
+        ``blocks``, ``regularised``, ``unestimated_blocks``,
+        ``unestimated_pixels``, ``static_frames``, ``rows``.
+    """
+
+    k: np.ndarray
+    confidence: np.ndarray
+    stats: dict = field(default_factory=dict)
+
+
+#: Predicted standard error of k at which confidence is 0.5.
+CONFIDENCE_SCALE = 0.01
+
+
+def sigma_from_confidence(confidence: np.ndarray) -> np.ndarray:
+    """Invert ``confidence = 1 / (1 + (sigma_k / CONFIDENCE_SCALE)^2)``: inf where confidence is 0."""
+    confidence = np.asarray(confidence)
+    dtype = np.float32 if confidence.dtype == np.float32 else np.float64  # float32 maps stay float32
+    ratio = np.divide(dtype(1), confidence, out=np.full(confidence.shape, np.inf, dtype), where=confidence > 0)
+    return dtype(CONFIDENCE_SCALE) * np.sqrt(ratio - dtype(1))
+
+
+def physical(result: GainResult, gain_range: tuple[float, float], structured: bool = False) -> GainResult:
+    """``result`` with every estimated k in ``gain_range`` and the gauge (mean 1 over the
+    estimated pixels) kept: a renormalisation can push a k just past a limit, so pixels
+    past it are left unestimated (k = 1, confidence 0) until none is. A ``structured``
+    map also gives unestimated pixels their column / row gain, renormalised with the rest."""
+    k = np.array(result.k, np.float32)
+    confidence = np.array(result.confidence, np.float32)
+    low, high = gain_range
+    while True:  # each round leaves at least one more pixel unestimated
+        est = confidence > 0
+        outside = est & ((k < low) | (k > high))
+        if not outside.any():
+            break
+        est &= ~outside
+        if est.any():
+            k[np.ones(k.shape, bool) if structured else est] /= k[est].mean(dtype=np.float64)
+        k[outside], confidence[outside] = 1.0, 0.0
+    return GainResult(k.astype(np.float32), confidence.astype(np.float32), result.stats)
