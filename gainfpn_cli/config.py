@@ -110,7 +110,7 @@ def _key(default: Any, check: Callable[[Any], Any], doc: str) -> Any:
 # --------------------------------------------------------------------------
 # sections
 
-#: EXR compressions that round-trip float32 exactly (see PITFALLS.md).
+#: EXR compressions that round-trip float32 exactly (pxr24, dwaa and dwab are lossy; docs/method.md section 14).
 LOSSLESS_COMPRESSIONS = ("none", "zip", "zips", "piz", "rle", "zstd")
 
 

@@ -8,7 +8,7 @@ when the cluster's workers run their native libraries single-threaded, as
 The pool is ``multiprocessing.Pool``, whose ``terminate`` stops the workers
 at once on an error or an interrupt. It uses the ``spawn`` start method:
 ``fork`` deadlocks once the parent has used OpenMP (rawpy) or OpenCV threads
-(PITFALLS.md). Workers run their native libraries single-threaded, so two
+(docs/method.md section 14). Workers run their native libraries single-threaded, so two
 workers use the two cores without oversubscription and every task computes
 exactly what it computes in-process.
 This module imports nothing heavy at the top: the worker initializer must run

@@ -42,7 +42,7 @@ def test_flat_noise_free_scene_recovers_the_gain():
     # The paper interpolates k and i separately, (T k)(T i) instead of T(k i):
     # on a flat scene that leaves a bias of order var(a) within a stencil
     # (~0.15 % for 5 % FPN), which the weakly observed low spatial frequencies
-    # (METHOD.md 5.3) amplify; measured 0.74 %. A wrong trajectory convention
+    # (docs/method.md section 5.3) amplify; measured 0.74 %. A wrong trajectory convention
     # leaves more than the input 5 %, so 1 % separates right from wrong.
     assert metrics.residual_fpn_percent(result.k, burst.gain, est) < 1.0
 
@@ -169,7 +169,7 @@ def test_validates_shapes():
 
 def test_paper_mode_beats_no_correction_on_a_noisy_textured_burst():
     # the paper's sensor and true motion: the published form gave 2.8x
-    # (METHOD.md section 4). With per-block conditioning it must at least
+    # (docs/method.md section 4). With per-block conditioning it must at least
     # halve the MSE on any seed; measured 5-12x on 120x160 bursts.
     burst = simulate_burst(shape=(64, 80), n_frames=8, seed=3, shake=Shake(translation_px=0.7, rotation_deg=0.1))
     frames = burst.frames.astype(np.float32)
@@ -181,7 +181,7 @@ def test_paper_mode_beats_no_correction_on_a_noisy_textured_burst():
 
 
 def test_paper_mode_reproduces_the_published_ratio():
-    # METHOD.md section 4: the published form gave 2.8x on the paper's sensor.
+    # docs/method.md section 4: the published form gave 2.8x on the paper's sensor.
     # On the photograph-like dead-leaves scene, true motion, the per-burst
     # ratio spreads 1.3-3.4x with the scene and shake (30 bursts of 96x128:
     # median 2.0; 15 of 120x160: median 2.2; 6 of 240x320: median 2.6), so

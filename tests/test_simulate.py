@@ -81,7 +81,7 @@ def test_noise_statistics_match_the_sensor_model():
 
 
 def test_paper_sensor_reproduces_the_published_mse_before():
-    # METHOD.md section 4: about 32 DN^2 with 5 % FPN, noise floor about 1 DN^2
+    # docs/method.md section 4: about 32 DN^2 with 5 % FPN, noise floor about 1 DN^2
     burst = simulate_burst(shape=(120, 160), n_frames=1, seed=2)
     mse = np.mean((burst.frames[0] - burst.ideal[0]) ** 2)
     floor = np.mean((burst.frames[0] / burst.gain - burst.ideal[0]) ** 2)

@@ -7,7 +7,7 @@ from hypothesis import strategies as st
 from gainfpn_cli.errors import EstimationError
 from gainfpn_cli.solve.kkt import OK, REGULARISED, UNESTIMATED, _solve_gauged, solve_block
 
-# METHOD.md section 2, paper Fig. 2: integer displacements, n_B = 4, F = 2, n_R = 6
+# docs/method.md section 2, paper Fig. 2: integer displacements, n_B = 4, F = 2, n_R = 6
 I0 = [131.1, 153, 135, 97]
 I1 = [140.76, 162, 121.25, 95]
 I2 = [149.04, 145.5, 118.75, 103]

@@ -3,7 +3,7 @@
 A scene (a built-in texture, or a user image) is viewed through a hand-held
 camera: frame ``t`` sees reference-frame point ``p`` at ``H_t_ref @ p``. Each
 pixel integrates the scene over its area (``supersample**2`` sub-samples of a
-cubic-interpolated scene raster), then the sensor of METHOD.md section 1
+cubic-interpolated scene raster), then the sensor of docs/method.md section 1
 turns light into counts:
 
     electrons ~ Poisson(a * e_ideal) + Normal(0, read_noise)
@@ -26,7 +26,7 @@ CFA_CHANNEL = {"R": 0, "G": 1, "B": 2}
 
 @dataclass(frozen=True)
 class Sensor:
-    """Sensor and ADC; defaults are the paper's sensor (METHOD.md section 4)."""
+    """Sensor and ADC; defaults are the paper's sensor (docs/method.md section 4)."""
 
     conversion_gain_uv: float = 32.5  # uV per electron
     swing_v: float = 1.0  # output swing, V
@@ -275,7 +275,7 @@ def dead_leaves(shape: tuple[int, int], rng: np.random.Generator, *, r_min: floa
 #: Built-in scenes, by name. ``dead-leaves`` uses a smallest leaf of 3 sensor
 #: pixels, chosen so that the paper's published form gives about its
 #: published ratio (2.8x; measured medians 2.2x on 120x160 and 2.6x on
-#: 240x320 bursts). The other figures of METHOD.md section 5, measured there
+#: 240x320 bursts). The other figures of docs/method.md section 5, measured there
 #: on a real photograph (global Lanczos solve 15x), then follow without
 #: further tuning (accurate mode, 120x160: median 16x).
 #: ``procedural`` is smoother (multi-scale noise and shapes of >= 1.5 px).

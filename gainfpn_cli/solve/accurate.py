@@ -1,5 +1,5 @@
 """The accurate solver (``solver.method: accurate``): one seamless global
-solve that removes what limits the published form (METHOD.md section 5).
+solve that removes what limits the published form (docs/method.md section 5).
 
 Every frame ``s`` anchors comparisons with every other frame ``t``: pixel
 ``q`` of frame ``s`` sees the scene point that frame ``t`` sees at
@@ -19,7 +19,7 @@ For each pixel, the least-squares ``k(q)`` given the right sides is
 comparison is valid). The estimate is the fixed point ``k = M k``. Writing
 ``k = 1 + x``, it solves ``(I - M + mu G) x = M 1 - 1`` by GMRES, where ``G``
 is a Gaussian low-pass: the low spatial frequencies that small motion cannot
-observe (METHOD.md 5.3) get a penalty that keeps the system well
+observe (docs/method.md section 5.3) get a penalty that keeps the system well
 conditioned, and the final gauge divides ``k`` by its own low-pass, so the
 low band is 1 by construction and the mean is 1.
 

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-#: The sensor of every bench burst (METHOD.md section 4).
+#: The sensor of every bench burst (docs/method.md section 4).
 SENSOR = "paper"
 
 
@@ -198,7 +198,7 @@ def run(out_dir: Path, *, quick: bool, groups: tuple[str, ...] = (), progress=No
 
 
 def _sensor(spec: BurstSpec):
-    """The bench sensor; with column FPN, 3 % pixel + the column part (METHOD.md section 4's second case)."""
+    """The bench sensor; with column FPN, 3 % pixel + the column part (docs/method.md section 4's second case)."""
     from ..sim.simulate import PRESETS, with_overrides
 
     return with_overrides(PRESETS[spec.sensor], fpn_pixel=0.03 if spec.fpn_column else None,
