@@ -71,7 +71,7 @@ def _parse_size(ctx, param, value: str) -> tuple[int, int]:
 
 
 def _parse_scene(ctx, param, value):
-    from .sim.simulate import SCENES
+    from .sim.scenes import SCENES
 
     if value in SCENES:
         return value
@@ -152,8 +152,9 @@ def simulate(out_dir, preset, n_frames, size, fmt, seed, scene, fpn_pixel, fpn_c
     """Write a synthetic burst with known gains and motion into OUT_DIR."""
     import dataclasses
 
+    from .sim.motion import Shake
+    from .sim.sensor import PRESETS, with_overrides
     from .sim.truth import simulate_to
-    from .sim.simulate import PRESETS, Shake, with_overrides
 
     sensor = with_overrides(PRESETS[preset], fpn_pixel=fpn_pixel, fpn_column=fpn_column, fpn_row=fpn_row,
                             read_noise_e=read_noise, adc_bits=bits, black_level=black)
@@ -268,8 +269,8 @@ def estimate(inputs, out_dir, config_path, preset, method, workers, block_size, 
     progress = _progress(quiet)
     with contextlib.ExitStack() as stack:
         if scheduler:
-            from .tools.batch import connect
             from .parallel import dask_backend
+            from .tools.batch import connect
 
             client = stack.enter_context(connect(scheduler))
             stack.enter_context(dask_backend(client))
@@ -450,8 +451,8 @@ def bench(out_dir, quick, groups, overwrite, quiet):
     calibration and the noise floor, scaling, parallel efficiency and
     flow-error sensitivity (see gainfpn_cli/bench.py).
     """
-    from .tools.bench import OUTPUTS, plan, run
     from .outdir import prepare, staged
+    from .tools.bench import OUTPUTS, plan, run
 
     try:
         points = plan(quick, groups)

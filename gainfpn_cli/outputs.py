@@ -18,10 +18,21 @@ from . import __version__
 from .burst import Estimate, LoadedBurst, Progress
 from .config import Config, dump_config
 from .errors import EstimationError, InputError
-from .files import (ATTR_CFA, ATTR_SATURATION, check_consistent, find_frames, read_exr_planes, read_frame, stamp,
-                    write_exr, write_text)
+from .files import (
+    ATTR_CFA,
+    ATTR_SATURATION,
+    check_consistent,
+    find_frames,
+    read_exr_planes,
+    read_frame,
+    stamp,
+    write_exr,
+    write_text,
+)
 from .outdir import OutputPlan, prepare, staged
 from .preview import write_preview
+
+
 def _gain_planes(k: np.ndarray, confidence: np.ndarray, channels: tuple[str, ...], cfa: str | None) -> dict:
     if cfa or len(channels) == 1:
         return {"Y": k[..., 0], "confidence": confidence[..., 0]}

@@ -8,7 +8,9 @@ import numpy as np
 import pytest
 from hypothesis import settings
 
-from gainfpn_cli.sim.simulate import PRESETS, Shake, simulate_burst
+from gainfpn_cli.sim.motion import Shake
+from gainfpn_cli.sim.sensor import PRESETS
+from gainfpn_cli.sim.simulate import simulate_burst
 
 # The same examples on every run (the suite is deterministic); a search for
 # new failures: HYPOTHESIS_PROFILE=explore python -m pytest tests/test_fuzz.py

@@ -11,8 +11,8 @@ import OpenImageIO as oiio
 import pytest
 
 from gainfpn_cli import metrics
-from gainfpn_cli.config import load_config
 from gainfpn_cli.burst import LoadedBurst
+from gainfpn_cli.config import load_config
 from gainfpn_cli.pipeline import estimate
 from gainfpn_cli.sim.simulate import simulate_burst
 

@@ -2,10 +2,12 @@ import numpy as np
 import pytest
 
 from gainfpn_cli import metrics
-from gainfpn_cli.solve.accurate import AccurateOptions, solve_accurate
 from gainfpn_cli.errors import EstimationError
-from gainfpn_cli.sim.simulate import PRESETS, Shake, simulate_burst, with_overrides
 from gainfpn_cli.geometry.resample import low_pass
+from gainfpn_cli.sim.motion import Shake
+from gainfpn_cli.sim.sensor import PRESETS, with_overrides
+from gainfpn_cli.sim.simulate import simulate_burst
+from gainfpn_cli.solve.accurate import AccurateOptions, solve_accurate
 
 NOISELESS = with_overrides(PRESETS["paper"], read_noise_e=0.0, shot_noise=False, adc_bits=16)
 
@@ -242,9 +244,9 @@ def test_the_greens_on_their_lattice_alias_less_than_each_green_plane():
     # measured with the true motion, 160x200 raw12 dead leaves (seed 4):
     # residual 1.10 % together, 2.01 % and 1.83 % alone
     from gainfpn_cli.geometry.cfa import green_lattice, plane_to_mosaic
-    from gainfpn_cli.metrics import residual_fpn_percent
-    from gainfpn_cli.sim.simulate import PRESETS
     from gainfpn_cli.geometry.warps import GlobalWarp
+    from gainfpn_cli.metrics import residual_fpn_percent
+    from gainfpn_cli.sim.sensor import PRESETS
 
     sensor = PRESETS["raw12"]
     burst = simulate_burst(shape=(160, 200), n_frames=8, sensor=sensor, scene="dead-leaves", seed=4)
@@ -315,9 +317,9 @@ def test_phase_weights_help_where_the_planes_alias():
     # interpolation errs most between pixels. Here (red plane, true motion)
     # measured 2.31 -> 2.01 % (seeds 5 and 6: 2.49 -> 2.05, 1.63 -> 1.46 %).
     from gainfpn_cli.geometry.cfa import plane_to_mosaic
-    from gainfpn_cli.metrics import residual_fpn_percent
-    from gainfpn_cli.sim.simulate import PRESETS
     from gainfpn_cli.geometry.warps import GlobalWarp
+    from gainfpn_cli.metrics import residual_fpn_percent
+    from gainfpn_cli.sim.sensor import PRESETS
 
     sensor = PRESETS["raw12"]
     burst = simulate_burst(shape=(160, 200), n_frames=8, sensor=sensor, scene="dead-leaves", seed=4)

@@ -10,12 +10,15 @@ import errno
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from helpers import _write_raw_exr  # the gainfpn writer refuses non-finite pixels itself
 
 from gainfpn_cli import files as io
 from gainfpn_cli.cli import main
-from gainfpn_cli.sim.simulate import PRESETS, simulate_burst, with_overrides
+from gainfpn_cli.errors import InputError
+from gainfpn_cli.sim.dng import write_dng
+from gainfpn_cli.sim.sensor import PRESETS, with_overrides
+from gainfpn_cli.sim.simulate import simulate_burst
 from gainfpn_cli.sim.truth import save_burst
-from helpers import _write_raw_exr  # the gainfpn writer refuses non-finite pixels itself
 
 
 @pytest.fixture(scope="module")
@@ -80,7 +83,7 @@ def test_a_damaged_frame_is_named(burst, tmp_path, how, expected):
 def test_a_raw_file_with_an_exr_name(burst, tmp_path):
     sensor = with_overrides(PRESETS["raw12"])
     raw = simulate_burst(shape=(64, 80), n_frames=1, seed=1, sensor=sensor).frames[0]
-    io.write_dng(tmp_path / "x.dng", raw, bits=12, cfa="RGGB", black=[256] * 4, white=4095)
+    write_dng(tmp_path / "x.dng", raw, bits=12, cfa="RGGB", black=[256] * 4, white=4095)
     (burst / "frame_002.exr").write_bytes((tmp_path / "x.dng").read_bytes())
     _assert_refused(_estimate([burst], tmp_path / "out"), tmp_path / "out",
                     "frame_002.exr: not an OpenEXR file (it reads as tiff)")
@@ -106,14 +109,14 @@ def test_mixed_sizes_and_cfa_layouts(burst, tmp_path):
 
 def test_exr_and_raw_frames_mixed(burst, tmp_path):
     raw = simulate_burst(shape=(64, 80), n_frames=1, seed=1, sensor=PRESETS["raw12"]).frames[0]
-    io.write_dng(burst / "frame_009.dng", raw, bits=12, cfa="RGGB", black=[256] * 4, white=4095)
+    write_dng(burst / "frame_009.dng", raw, bits=12, cfa="RGGB", black=[256] * 4, white=4095)
     _assert_refused(_estimate([burst], tmp_path / "out"), tmp_path / "out", "frame_009.dng")
 
 
 def test_mixed_bit_depths(tmp_path):
     rng = np.random.default_rng(4)
     for i, bits in enumerate((12, 12, 16, 12)):
-        io.write_dng(tmp_path / f"f{i}.dng", rng.integers(64, 4000, (64, 80)).astype(np.uint16), bits=bits,
+        write_dng(tmp_path / f"f{i}.dng", rng.integers(64, 4000, (64, 80)).astype(np.uint16), bits=bits,
                      cfa="RGGB", black=[64] * 4, white=2**bits - 1)
     _assert_refused(_estimate([tmp_path], tmp_path.parent / "out"), tmp_path.parent / "out",
                     "f2.dng: white level 65535", "differs from f0.dng (4095)")
@@ -124,7 +127,7 @@ def test_unusual_black_levels_are_read_from_the_file(tmp_path):
     black = np.array([[60, 64], [3995, 72]])
     levels = np.tile(black, (32, 40))
     counts = np.random.default_rng(3).integers(0, 100, (64, 80)) + levels
-    io.write_dng(tmp_path / "f.dng", counts.astype(np.uint16), bits=12, cfa="RGGB", black=black.ravel().tolist(),
+    write_dng(tmp_path / "f.dng", counts.astype(np.uint16), bits=12, cfa="RGGB", black=black.ravel().tolist(),
                  white=4095)
     frame = io.read_frame(tmp_path / "f.dng")
     np.testing.assert_array_equal(frame.data[..., 0], counts - levels)
@@ -140,7 +143,7 @@ def test_a_full_disk_while_writing(burst, tmp_path, monkeypatch):
     def full(path, *args, **kwargs):
         calls.append(path)
         if len(calls) == 3:  # the gain map and a corrected frame are written, then the disk fills
-            raise io.InputError(f"{path}: cannot write ({__import__('os').strerror(errno.ENOSPC)})")
+            raise InputError(f"{path}: cannot write ({__import__('os').strerror(errno.ENOSPC)})")
         return write(path, *args, **kwargs)
 
     monkeypatch.setattr(outputs, "write_exr", full)
@@ -170,7 +173,7 @@ def test_the_write_error_of_a_full_disk_names_the_file(tmp_path, monkeypatch):
             return "Write error: No space left on device"
 
     monkeypatch.setattr(oiio, "ImageOutput", Full)
-    with pytest.raises(io.InputError, match=r"k\.exr: .*No space left on device"):
+    with pytest.raises(InputError, match=r"k\.exr: .*No space left on device"):
         io.write_exr(tmp_path / "k.exr", {"Y": np.ones((4, 4))})
     assert not list(tmp_path.iterdir())
 

@@ -14,13 +14,13 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from gainfpn_cli.tools.batch import COLUMNS, INSTALL_HINT, Job, load_manifest, run_batch
 from gainfpn_cli.cli import main
 from gainfpn_cli.errors import ConfigError
 from gainfpn_cli.files import read_exr_planes
 from gainfpn_cli.outdir import MANIFEST, read_manifest
 from gainfpn_cli.sim.simulate import simulate_burst
 from gainfpn_cli.sim.truth import save_burst
+from gainfpn_cli.tools.batch import COLUMNS, INSTALL_HINT, Job, load_manifest, run_batch
 
 OUTPUTS = {"gain_map.exr", "corrected", "report.json", "config.used.yaml", "preview.png", MANIFEST}
 

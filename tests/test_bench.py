@@ -3,9 +3,9 @@ import json
 import pytest
 from click.testing import CliRunner
 
+from gainfpn_cli.cli import main
 from gainfpn_cli.tools import bench
 from gainfpn_cli.tools.bench import BurstSpec, Point
-from gainfpn_cli.cli import main
 
 
 def test_a_small_plan_runs_every_kind_of_point(tmp_path, monkeypatch):

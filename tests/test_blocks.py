@@ -2,10 +2,12 @@ import numpy as np
 import pytest
 
 from gainfpn_cli import metrics
-from gainfpn_cli.solve.blocks import solve_paper
 from gainfpn_cli.errors import EstimationError
 from gainfpn_cli.geometry.warps import positions_from_homography
-from gainfpn_cli.sim.simulate import PRESETS, Shake, simulate_burst, with_overrides
+from gainfpn_cli.sim.motion import Shake
+from gainfpn_cli.sim.sensor import PRESETS, with_overrides
+from gainfpn_cli.sim.simulate import simulate_burst
+from gainfpn_cli.solve.blocks import solve_paper
 from gainfpn_cli.solve.kkt import SolveOptions
 
 NOISELESS = with_overrides(PRESETS["paper"], read_noise_e=0.0, shot_noise=False, adc_bits=16)

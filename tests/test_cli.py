@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from gainfpn_cli import __version__, files as io
+from gainfpn_cli import __version__
+from gainfpn_cli import files as io
 from gainfpn_cli.cli import main
 
 

@@ -5,7 +5,16 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from gainfpn_cli.config import LOSSLESS_COMPRESSIONS, Config, dump_config, key_docs, load_config, parse_config, preset_names, preset_text
+from gainfpn_cli.config import (
+    LOSSLESS_COMPRESSIONS,
+    Config,
+    dump_config,
+    key_docs,
+    load_config,
+    parse_config,
+    preset_names,
+    preset_text,
+)
 from gainfpn_cli.errors import ConfigError
 
 DEFAULT_YAML = Path(__file__).parents[1] / "configs" / "default.yaml"

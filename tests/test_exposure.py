@@ -8,11 +8,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers import _residual, _run
 
-from gainfpn_cli.solve.accurate import AccurateOptions, solve_accurate
 from gainfpn_cli.motion.exposure import SIGNIFICANCE, relative_exposures, significant
 from gainfpn_cli.sim.simulate import simulate_burst
-from helpers import _residual, _run
+from gainfpn_cli.solve.accurate import AccurateOptions, solve_accurate
 
 SHAPE = (120, 160)
 

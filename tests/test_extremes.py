@@ -8,19 +8,20 @@ runs them all in about 20 s.
 
 from __future__ import annotations
 
-
 import cv2
 import numpy as np
 import pytest
+from helpers import SHAPE, _assert_sane, _burst, _residual, _run
 
 from gainfpn_cli import metrics
 from gainfpn_cli.config import load_config
 from gainfpn_cli.errors import EstimationError
 from gainfpn_cli.geometry.warps import trajectory_rms
 from gainfpn_cli.pipeline import estimate, load_burst
-from gainfpn_cli.sim.simulate import PRESETS, simulate_burst, with_overrides
+from gainfpn_cli.sim.sensor import PRESETS, with_overrides
+from gainfpn_cli.sim.simulate import simulate_burst
 from gainfpn_cli.sim.truth import save_burst
-from helpers import SHAPE, _assert_sane, _burst, _residual, _run
+
 
 @pytest.fixture(scope="module")
 def shaken():

@@ -2,9 +2,10 @@ import numpy as np
 import pytest
 
 from gainfpn_cli import metrics
+from gainfpn_cli.sim.sensor import PRESETS, with_overrides
+from gainfpn_cli.sim.simulate import simulate_burst
 from gainfpn_cli.solve.accurate import solve_accurate
 from gainfpn_cli.solve.fpnmodel import MODELS, pixel_prior_variance, select_model, structured_parts
-from gainfpn_cli.sim.simulate import PRESETS, simulate_burst, with_overrides
 
 SIGMA = 0.005  # standard error of every synthetic k
 

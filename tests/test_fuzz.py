@@ -18,6 +18,7 @@ from hypothesis import strategies as st
 from gainfpn_cli import files as io
 from gainfpn_cli.config import Config, parse_config
 from gainfpn_cli.errors import ConfigError, InputError
+from gainfpn_cli.sim.dng import write_dng
 
 FUZZ = settings(max_examples=int(os.environ.get("FUZZ_EXAMPLES", 60)), deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 
@@ -27,7 +28,7 @@ def valid_files(tmp_path_factory):
     folder = tmp_path_factory.mktemp("fuzz")
     rng = np.random.default_rng(0)
     io.write_exr(folder / "v.exr", {"Y": rng.random((16, 20))}, compression="zip")
-    io.write_dng(folder / "v.dng", rng.integers(0, 4096, (16, 20)).astype(np.uint16), bits=12, cfa="RGGB",
+    write_dng(folder / "v.dng", rng.integers(0, 4096, (16, 20)).astype(np.uint16), bits=12, cfa="RGGB",
                  black=[64] * 4, white=4095)
     return {ext: (folder / f"v.{ext}").read_bytes() for ext in ("exr", "dng")}
 

@@ -15,7 +15,8 @@ import pytest
 
 from gainfpn_cli.config import load_config
 from gainfpn_cli.pipeline import estimate, load_burst
-from gainfpn_cli.sim.simulate import PRESETS, simulate_burst
+from gainfpn_cli.sim.sensor import PRESETS
+from gainfpn_cli.sim.simulate import simulate_burst
 from gainfpn_cli.sim.truth import save_burst
 
 GOLDEN = Path(__file__).parent / "golden"

@@ -3,13 +3,15 @@ import os
 import numpy as np
 import pytest
 import rawpy
+from helpers import _write_raw_exr
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from gainfpn_cli import files as io
 from gainfpn_cli.errors import InputError
-from helpers import _write_raw_exr
+from gainfpn_cli.sim.dng import write_dng
+from gainfpn_cli.sim.scenes import read_scene
 
 
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
@@ -73,7 +75,7 @@ def test_nan_pixels_are_refused(tmp_path):
 
 
 def _dng(path, counts, cfa="RGGB", black=(100, 101, 102, 103), bits=12):
-    io.write_dng(path, counts.astype(np.uint16), bits=bits, cfa=cfa, black=black, white=2**bits - 1)
+    write_dng(path, counts.astype(np.uint16), bits=bits, cfa=cfa, black=black, white=2**bits - 1)
 
 
 @pytest.mark.parametrize("cfa", ["RGGB", "BGGR", "GRBG", "GBRG"])
@@ -201,9 +203,16 @@ def test_atomic_write_leaves_nothing_on_failure(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out.exr"]  # no temporary left
 
 
-def test_outputs_follow_the_umask(tmp_path):
-    io.write_text(tmp_path / "t.txt", "hi")
-    assert (tmp_path / "t.txt").stat().st_mode & 0o777 == 0o666 & ~io._UMASK
+@pytest.mark.parametrize("umask", [0o022, 0o027])
+def test_outputs_follow_the_umask(tmp_path, umask):
+    saved = os.umask(umask)
+    try:
+        io.write_text(tmp_path / "t.txt", "hi")
+        io.write_exr(tmp_path / "t.exr", {"Y": np.zeros((4, 4), np.float32)})
+    finally:
+        os.umask(saved)
+    for name in ("t.txt", "t.exr"):
+        assert (tmp_path / name).stat().st_mode & 0o777 == 0o666 & ~umask
 
 
 def test_unwritable_directory(tmp_path):
@@ -221,7 +230,7 @@ def test_read_scene_linearises_8bit(tmp_path):
 
     img = np.full((30, 40), 128, np.uint8)
     cv2.imwrite(str(tmp_path / "s.png"), img)
-    scene = io.read_scene(tmp_path / "s.png")
+    scene = read_scene(tmp_path / "s.png")
     assert scene.shape == (30, 40)
     np.testing.assert_allclose(scene, (128 / 255) ** 2.2, rtol=1e-5)
 

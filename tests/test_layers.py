@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from gainfpn_cli.motion.layers import MEMBER_PX, find_layers
 from gainfpn_cli.geometry.warps import apply_homography
+from gainfpn_cli.motion.layers import MEMBER_PX, find_layers
 
 
 def _homography(dx, dy, angle_deg=0.0, about=(0.0, 0.0)):

@@ -3,14 +3,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from gainfpn_cli.burst import LoadedBurst
 from gainfpn_cli.config import load_config
 from gainfpn_cli.errors import EstimationError
+from gainfpn_cli.geometry.warps import positions_from_flow, positions_from_homography, trajectory_rms
 from gainfpn_cli.motion.estimate import estimate_motion
 from gainfpn_cli.motion.masks import moving_masks
-from gainfpn_cli.geometry.warps import positions_from_flow, positions_from_homography, trajectory_rms
-from gainfpn_cli.burst import LoadedBurst
 from gainfpn_cli.pipeline import estimate
-from gainfpn_cli.sim.simulate import Shake, simulate_burst
+from gainfpn_cli.sim.motion import Shake
+from gainfpn_cli.sim.simulate import simulate_burst
 
 SHAPE = (200, 260)
 
@@ -257,7 +258,7 @@ def test_moving_masks_at_reduced_resolution():
 
 def test_coarse_shift_of_a_large_frame_is_measured_reduced():
     from gainfpn_cli.motion.track import COARSE_PIXELS, coarse_shift
-    from gainfpn_cli.sim.simulate import procedural_scene
+    from gainfpn_cli.sim.scenes import procedural_scene
 
     scene = procedural_scene((1300, 1700), np.random.default_rng(0))
     ref = scene[40:1240, 40:1640]  # 1.9 MP: phase correlation runs halved

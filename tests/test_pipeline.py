@@ -5,13 +5,15 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from gainfpn_cli import files as io, metrics
+from gainfpn_cli import files as io
+from gainfpn_cli import metrics
 from gainfpn_cli.cli import main
 from gainfpn_cli.config import Config, load_config
 from gainfpn_cli.outdir import MANIFEST
 from gainfpn_cli.outputs import write_estimate
 from gainfpn_cli.pipeline import estimate, load_burst
-from gainfpn_cli.sim.simulate import Shake, simulate_burst
+from gainfpn_cli.sim.motion import Shake
+from gainfpn_cli.sim.simulate import simulate_burst
 from gainfpn_cli.sim.truth import save_burst
 
 

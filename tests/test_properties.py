@@ -11,14 +11,16 @@ import numpy as np
 import OpenImageIO as oiio
 import pytest
 from click.testing import CliRunner
+from helpers import _burst, _run
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from gainfpn_cli.cli import main
 from gainfpn_cli.errors import EstimationError
-from gainfpn_cli.sim.simulate import PRESETS, Shake, simulate_burst, with_overrides
+from gainfpn_cli.sim.motion import Shake
+from gainfpn_cli.sim.sensor import PRESETS, with_overrides
+from gainfpn_cli.sim.simulate import simulate_burst
 from gainfpn_cli.sim.truth import save_burst
-from helpers import _burst, _run
 
 
 @settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])

@@ -5,7 +5,10 @@ import numpy as np
 import pytest
 
 from gainfpn_cli import files as io
-from gainfpn_cli.sim.simulate import PRESETS, Shake, dead_leaves, procedural_scene, render, simulate_burst, with_overrides
+from gainfpn_cli.sim.motion import Shake
+from gainfpn_cli.sim.scenes import dead_leaves, procedural_scene
+from gainfpn_cli.sim.sensor import PRESETS, with_overrides
+from gainfpn_cli.sim.simulate import render, simulate_burst
 from gainfpn_cli.sim.truth import load_truth, save_burst
 
 PAPER = PRESETS["paper"]

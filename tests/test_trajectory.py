@@ -5,9 +5,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from gainfpn_cli.motion.fields import FIELD_CELLS, fit_field
-from gainfpn_cli.geometry.warps import FieldWarp, GlobalWarp, as_warp, field_at
 from gainfpn_cli.geometry.resample import positions, sample
+from gainfpn_cli.geometry.warps import FieldWarp, GlobalWarp, as_warp, field_at
+from gainfpn_cli.motion.fields import FIELD_CELLS, fit_field
 
 SHAPE = (240, 320)
 
@@ -199,8 +199,8 @@ def test_bounded_maps_sample_alike_where_the_samples_are_valid():
     # NOWHERE positions are brought to just outside the source (OpenCV's
     # reflecting border walked to -1e5 one reflection at a time: a layered
     # solve of 120x160x6 took 4.5 s, now 0.4 s, with the same k)
-    from gainfpn_cli.geometry.warps import NOWHERE
     from gainfpn_cli.geometry.resample import bounded, sample, valid_samples
+    from gainfpn_cli.geometry.warps import NOWHERE
 
     rng = np.random.default_rng(0)
     image = rng.uniform(1, 2, (30, 40)).astype(np.float32)

@@ -43,10 +43,28 @@ LATTICE = 8
 EDGE_PX = 3 * LATTICE
 
 
+#: A displacement below this (px, RMS over the frame) cannot be told from zero: the accuracy
+#: the motion estimate is held to (docs/limits.md, motion accuracy). A frame that moves less adds
+#: nothing about k, and a burst none of whose frames moves more cannot be corrected.
+STILL_PX = 0.05
+
+
 def apply_homography(H: np.ndarray, points: np.ndarray) -> np.ndarray:
     """``H`` applied to ``(..., 2)`` points ``(x, y)``."""
     p = np.asarray(points, np.float64) @ H[:, :2].T + H[:, 2]
     return p[..., :2] / p[..., 2:3]
+
+
+def homography_xy(H: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``H`` applied to points given as coordinate arrays ``x`` and ``y`` of any one shape."""
+    den = H[2, 0] * x + H[2, 1] * y + H[2, 2]
+    return (H[0, 0] * x + H[0, 1] * y + H[0, 2]) / den, (H[1, 0] * x + H[1, 1] * y + H[1, 2]) / den
+
+
+def project(H: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """``H`` applied to homogeneous points ``p`` of shape ``(3, N)``: their ``(2, N)`` pixel coordinates."""
+    q = H @ p
+    return q[:2] / q[2]
 
 
 def _shifted(M: np.ndarray, region: tuple[int, int, int, int]) -> np.ndarray:
@@ -371,5 +389,4 @@ def trajectory_rms(H_est: np.ndarray, H_true: np.ndarray, shape: tuple[int, int]
     h, w = shape
     ys, xs = np.mgrid[0:h:step, 0:w:step].astype(np.float64)
     p = np.stack([xs.ravel(), ys.ravel(), np.ones(xs.size)])
-    a, b = H_est @ p, H_true @ p
-    return float(np.sqrt(np.mean(np.sum((a[:2] / a[2] - b[:2] / b[2]) ** 2, axis=0))))
+    return float(np.sqrt(np.mean(np.sum((project(H_est, p) - project(H_true, p)) ** 2, axis=0))))

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import EstimationError, TrackingError
-from ..geometry.warps import FieldWarp, GlobalWarp, LayeredWarp, apply_homography, trajectory_rms
+from ..geometry.warps import STILL_PX, FieldWarp, GlobalWarp, LayeredWarp, apply_homography, trajectory_rms
 from ..metrics import point_noise_variance
 from .fields import FIELD_CELLS, fit_field
 from .fields import residuals as field_residuals
@@ -59,9 +59,6 @@ class MotionResult:
 
 
 
-#: An estimated displacement below this (px, RMS over the frame) cannot be
-#: told from zero: it is the accuracy the motion estimate is held to.
-STILL_PX = 0.05
 
 
 

@@ -25,8 +25,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..geometry.warps import as_warp
 from ..geometry.resample import sample, valid_samples
+from ..geometry.warps import as_warp
 
 #: About this many pixels are compared per frame and way (every n-th on each
 #: axis of a larger frame): the standard error is ~0.05 % with the 19 200 of

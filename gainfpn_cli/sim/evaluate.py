@@ -12,6 +12,8 @@ from ..files import ATTR_CFA, find_frames, read_exr_planes, read_frame, stamp
 from ..metrics import mse, residual_fpn_percent
 from ..outputs import read_gain_map
 from .truth import load_truth, residual_bound_percent
+
+
 def evaluate(out_dir: Path, sim_dir: Path) -> dict:
     """Residual gain FPN and the paper's MSE before/after, against a simulation's truth.
 

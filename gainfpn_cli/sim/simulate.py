@@ -16,62 +16,21 @@ does not change the scene, motion or gains.
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
 
-CFA_CHANNEL = {"R": 0, "G": 1, "B": 2}
+from ..geometry.warps import homography_xy, project
+from .motion import Shake, margin_px, shake_homographies, wave_parameters, wave_shift
+from .scenes import SCENES, dead_leaves, fit_scene, procedural_scene
+from .sensor import CFA_CHANNEL, PRESETS, Sensor, gain_pattern
 
+#: Fixed-point iterations of ``q = H p + shift(q)`` in :meth:`Burst.positions`;
+#: each shrinks the error by the shift's slope (2 pi A / L, 0.04 for a 1 px
+#: wave of 160 px): far below float precision after these.
+WAVE_ITERATIONS = 30
 
-@dataclass(frozen=True)
-class Sensor:
-    """Sensor and ADC; defaults are the paper's sensor (docs/method.md section 4)."""
-
-    conversion_gain_uv: float = 32.5  # uV per electron
-    swing_v: float = 1.0  # output swing, V
-    read_noise_e: float = 50.0  # electrons RMS
-    adc_bits: int = 8
-    black_level: int = 0  # DN added before the ADC clips
-    fpn_pixel: float = 0.05  # sigma of the per-pixel gain
-    fpn_column: float = 0.0  # sigma of the per-column gain
-    fpn_row: float = 0.0  # sigma of the even/odd-row gain
-    cfa: str | None = None  # 2x2 layout such as "RGGB", or None (monochrome)
-    shot_noise: bool = True  # Poisson photon noise (off only for tests of the model)
-
-    @property
-    def full_well_e(self) -> float:
-        return self.swing_v / (self.conversion_gain_uv * 1e-6)
-
-    @property
-    def white_level(self) -> int:
-        return 2**self.adc_bits - 1
-
-    @property
-    def dn_per_e(self) -> float:
-        return self.white_level / self.full_well_e
-
-
-@dataclass(frozen=True)
-class Shake:
-    """Hand-held camera motion relative to frame 0 (frame 0 is the identity)."""
-
-    translation_px: float = 2.0  # sigma of the per-frame translation, px
-    rotation_deg: float = 0.3  # sigma of the per-frame rotation about the centre
-    drift_px: float = 0.0  # steady pan over the whole burst, px, in a random direction
-    perspective: float = 0.0  # sigma of the projective terms, 1/px
-    wobble_px: float = 0.0  # sigma of a rolling-shutter wobble's amplitude, px (no single warp explains it)
-    wobble_cycles: float = 1.5  # its periods over the frame height
-    distortion_px: float = 0.0  # sigma of a smooth 2-D distortion's amplitude per axis, px (parallax, lens)
-    distortion_cycles: float = 1.0  # its periods over the frame's longer side
-
-
-#: Named sensors: the paper's, and a 12-bit RGGB camera for DNG bursts.
-PRESETS = {
-    "paper": Sensor(),
-    "raw12": Sensor(conversion_gain_uv=50.0, swing_v=1.0, read_noise_e=3.0, adc_bits=12, black_level=256,
-                    fpn_pixel=0.01, cfa="RGGB"),
-}
+DEAD_LEAVES_MIN_PX = 3.0
 
 
 @dataclass(frozen=True)
@@ -139,172 +98,6 @@ class Burst:
         return positions_from_homography(self.homographies[t] @ T, self.frames.shape[1:])
 
 
-#: Fixed-point iterations of ``q = H p + shift(q)`` in :meth:`Burst.positions`;
-#: each shrinks the error by the shift's slope (2 pi A / L, 0.04 for a 1 px
-#: wave of 160 px): far below float precision after these.
-WAVE_ITERATIONS = 30
-
-
-def shake_homographies(n_frames: int, shape: tuple[int, int], shake: Shake, rng: np.random.Generator) -> np.ndarray:
-    """``H_t_ref`` for each frame: rotation about the centre, translation, drift."""
-    h, w = shape
-    centre = np.array([(w - 1) / 2.0, (h - 1) / 2.0])
-    direction = rng.uniform(0, 2 * np.pi)
-    out = np.empty((n_frames, 3, 3))
-    out[0] = np.eye(3)
-    for t in range(1, n_frames):
-        angle = np.deg2rad(rng.normal(0.0, shake.rotation_deg))
-        shift = rng.normal(0.0, shake.translation_px, size=2)
-        shift += shake.drift_px * t / max(n_frames - 1, 1) * np.array([np.cos(direction), np.sin(direction)])
-        c, s = np.cos(angle), np.sin(angle)
-        rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-        to_origin = np.array([[1.0, 0.0, -centre[0]], [0.0, 1.0, -centre[1]], [0.0, 0.0, 1.0]])
-        back = np.array([[1.0, 0.0, centre[0] + shift[0]], [0.0, 1.0, centre[1] + shift[1]], [0.0, 0.0, 1.0]])
-        persp = np.eye(3)
-        persp[2, :2] = rng.normal(0.0, shake.perspective, size=2)
-        out[t] = back @ rot @ persp @ to_origin
-    return out
-
-
-def wave_parameters(n_frames: int, shape: tuple[int, int], shake: Shake, rng: np.random.Generator) -> np.ndarray | None:
-    """Per frame and wave ``(axis, amplitude px, angle rad, phase rad, wavelength px)``, or None without waves.
-
-    Frame t sees reference point ``p`` at ``q = H_t p + shift(q)``, the sum
-    over waves of ``A sin(2 pi (q_x cos a + q_y sin a) / L + phi)`` along
-    ``axis`` (0: x, 1: y). A rolling-shutter wobble is one horizontal wave
-    down the rows (``a = pi / 2``), as a shutter that reads row ``q_y`` at
-    its own time records a vibrating camera; a distortion is one wave per
-    axis in random directions, a smooth 2-D stand-in for parallax or a
-    change of lens distortion. The reference has none.
-    """
-    h, w = shape
-    waves = []
-    if shake.wobble_px > 0:
-        wobble = np.zeros((n_frames, 5))
-        wobble[:, 2], wobble[:, 4] = np.pi / 2, h / shake.wobble_cycles
-        wobble[1:, 1] = rng.normal(0.0, shake.wobble_px, n_frames - 1)
-        wobble[1:, 3] = rng.uniform(0, 2 * np.pi, n_frames - 1)
-        waves.append(wobble)
-    if shake.distortion_px > 0:
-        for axis in (0, 1):
-            wave = np.zeros((n_frames, 5))
-            wave[:, 0], wave[:, 4] = axis, max(h, w) / shake.distortion_cycles
-            wave[1:, 1] = rng.normal(0.0, shake.distortion_px, n_frames - 1)
-            wave[1:, 2] = rng.uniform(0, np.pi, n_frames - 1)
-            wave[1:, 3] = rng.uniform(0, 2 * np.pi, n_frames - 1)
-            waves.append(wave)
-    return np.stack(waves, axis=1) if waves else None
-
-
-def wave_shift(waves: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The shift ``(dx, dy)`` of one frame's ``waves`` ``(K, 5)`` at frame point ``(x, y)``."""
-    out = [np.zeros(np.broadcast(x, y).shape), np.zeros(np.broadcast(x, y).shape)]
-    for axis, amplitude, angle, phase, wavelength in waves:
-        out[int(axis)] += amplitude * np.sin(2 * np.pi * (x * np.cos(angle) + y * np.sin(angle)) / wavelength + phase)
-    return out[0], out[1]
-
-
-def procedural_scene(shape: tuple[int, int], rng: np.random.Generator, *, colour: bool = False) -> np.ndarray:
-    """A natural-looking texture in [0.05, 0.95]: multi-scale noise plus shapes.
-
-    Returns float32 ``(h, w)``, or ``(h, w, 3)`` with ``colour``.
-    """
-    import cv2
-
-    h, w = shape
-    grey = np.zeros(shape, np.float32)
-    cell = 3
-    while cell < max(h, w):
-        grid = rng.standard_normal((h // cell + 4, w // cell + 4)).astype(np.float32)
-        big = cv2.resize(grid, ((grid.shape[1]) * cell, (grid.shape[0]) * cell), interpolation=cv2.INTER_CUBIC)
-        grey += cell**0.5 * big[cell : cell + h, cell : cell + w]
-        cell *= 2
-    grey = (grey - grey.mean()) / (grey.std() + 1e-12)
-    n_shapes = max(8, h * w // 6000)
-    for _ in range(n_shapes):
-        level = float(rng.normal(0.0, 1.5))
-        x, y = int(rng.integers(0, w)), int(rng.integers(0, h))
-        size = int(rng.integers(3, max(4, min(h, w) // 6)))
-        if rng.random() < 0.5:
-            cv2.circle(grey, (x, y), size, level, -1, lineType=cv2.LINE_AA)
-        else:
-            pts = np.array([[x, y], [x + size, y + int(rng.integers(-size, size + 1))], [x + int(rng.integers(-size, size + 1)), y + size]], np.int32)
-            cv2.fillPoly(grey, [pts], level, lineType=cv2.LINE_AA)
-    lo, hi = np.percentile(grey, [1, 99])
-    grey = np.clip(0.05 + 0.9 * (grey - lo) / (hi - lo + 1e-12), 0.05, 0.95).astype(np.float32)
-    if not colour:
-        return grey
-    tint_grid = rng.uniform(0.55, 1.0, size=(4, 4, 3)).astype(np.float32)
-    tint = cv2.resize(tint_grid, (w, h), interpolation=cv2.INTER_CUBIC)
-    return np.clip(grey[:, :, None] * tint, 0.02, 0.95).astype(np.float32)
-
-
-def dead_leaves(shape: tuple[int, int], rng: np.random.Generator, *, r_min: float, r_max: float | None = None,
-                colour: bool = False, coverage: float = 6.0) -> np.ndarray:
-    """The dead-leaves texture of camera texture tests (ISO 19567-2, IEEE 1858).
-
-    Opaque disks of uniform random value (or colour), radii distributed as
-    ``r**-3`` on ``[r_min, r_max]``, drawn back to front ``coverage`` times
-    over (so less than ``exp(-coverage)`` of the background shows). Its
-    statistics are those of natural images: scale invariance, sharp
-    occluding edges, a ``1/f**2`` power spectrum.
-
-    Returns float32 ``(h, w)`` in [0.05, 0.95], or ``(h, w, 3)`` with ``colour``.
-    Radii are in raster pixels; ``r_max`` defaults to a quarter of the longer side.
-    """
-    import cv2
-
-    h, w = shape
-    r_max = float(r_max or max(h, w) / 4)
-    if not 0 < r_min < r_max:
-        raise ValueError(f"need 0 < r_min < r_max, got {r_min}, {r_max}")
-    span = 1.0 - (r_min / r_max) ** 2
-    mean_area = np.pi * 2.0 * r_min**2 * np.log(r_max / r_min) / span
-    n = int(np.ceil(coverage * (h + 2 * r_max) * (w + 2 * r_max) / mean_area))
-    radius = r_min / np.sqrt(1.0 - rng.random(n) * span)  # inverse CDF of r**-3
-    x = rng.uniform(-r_max, w + r_max, n)
-    y = rng.uniform(-r_max, h + r_max, n)
-    value = rng.uniform(0.05, 0.95, (n, 3 if colour else 1))
-    out = np.full(shape + ((3,) if colour else ()), 0.5, np.float32)
-    fixed = 16  # cv2 sub-pixel coordinates: 4 fractional bits
-    for xi, yi, ri, vi in zip((x * fixed).astype(int), (y * fixed).astype(int), (radius * fixed).astype(int), value):
-        cv2.circle(out, (int(xi), int(yi)), int(ri), vi.tolist(), -1, lineType=cv2.LINE_AA, shift=4)
-    return out
-
-
-#: Built-in scenes, by name. ``dead-leaves`` uses a smallest leaf of 3 sensor
-#: pixels, chosen so that the paper's published form gives about its
-#: published ratio (2.8x; measured medians 2.2x on 120x160 and 2.6x on
-#: 240x320 bursts). The other figures of docs/method.md section 5, measured there
-#: on a real photograph (global Lanczos solve 15x), then follow without
-#: further tuning (accurate mode, 120x160: median 16x).
-#: ``procedural`` is smoother (multi-scale noise and shapes of >= 1.5 px).
-SCENES = ("procedural", "dead-leaves")
-DEAD_LEAVES_MIN_PX = 3.0
-
-
-def gain_pattern(shape: tuple[int, int], sensor: Sensor, rng: np.random.Generator) -> np.ndarray:
-    """True gain ``a`` = (1 + pixel) * (1 + column) * (1 + even/odd row), float32."""
-    h, w = shape
-    pixel = 1.0 + sensor.fpn_pixel * rng.standard_normal(shape)
-    column = 1.0 + sensor.fpn_column * rng.standard_normal(w)
-    row_pair = 1.0 + sensor.fpn_row * rng.standard_normal(2)
-    row = row_pair[np.arange(h) % 2]
-    return np.clip(pixel * column[None, :] * row[:, None], 0.05, None).astype(np.float32)
-
-
-def _margin(homographies: np.ndarray, shape: tuple[int, int]) -> int:
-    """Sensor pixels the scene must extend past the reference view."""
-    h, w = shape
-    corners = np.array([[-0.5, -0.5, 1], [w - 0.5, -0.5, 1], [-0.5, h - 0.5, 1], [w - 0.5, h - 0.5, 1]]).T
-    worst = 0.0
-    for H in homographies:
-        p = np.linalg.inv(H) @ corners
-        p = p[:2] / p[2]
-        worst = max(worst, float(np.max(-p)), float(np.max(p[0] - w)), float(np.max(p[1] - h)))
-    return int(np.ceil(worst)) + 4
-
-
 def render(scene: np.ndarray, H: np.ndarray, shape: tuple[int, int], *, scale: int, margin: int, supersample: int,
            waves: np.ndarray | None = None) -> np.ndarray:
     """Area-integrate the scene as seen by a frame with homography ``H`` (ref -> frame).
@@ -327,16 +120,11 @@ def render(scene: np.ndarray, H: np.ndarray, shape: tuple[int, int], *, scale: i
             if waves is not None:
                 dx, dy = wave_shift(waves, X, Y)
                 X, Y = X - dx, Y - dy
-            px, py = _apply(Hinv, X, Y)
+            px, py = homography_xy(Hinv, X, Y)
             map_x = ((px + margin + 0.5) * scale - 0.5).astype(np.float32)
             map_y = ((py + margin + 0.5) * scale - 0.5).astype(np.float32)
             acc += cv2.remap(scene, map_x, map_y, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
     return np.clip(acc / supersample**2, 0.0, None)
-
-
-def _apply(H: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    den = H[2, 0] * x + H[2, 1] * y + H[2, 2]
-    return (H[0, 0] * x + H[0, 1] * y + H[0, 2]) / den, (H[1, 0] * x + H[1, 1] * y + H[1, 2]) / den
 
 
 def simulate_burst(
@@ -396,7 +184,7 @@ def simulate_burst(
         exposures[0] = 1.0
     homographies = shake_homographies(n_frames, shape, shake, rng_motion)
     waves = wave_parameters(n_frames, shape, shake, rng_motion)
-    margin = _margin(homographies, shape) + (0 if waves is None else int(np.ceil(np.abs(waves[:, :, 1]).sum(1).max())))
+    margin = margin_px(homographies, shape) + (0 if waves is None else int(np.ceil(np.abs(waves[:, :, 1]).sum(1).max())))
     scale = 2
     raster_shape = ((h + 2 * margin) * scale, (w + 2 * margin) * scale)
     colour = sensor.cfa is not None
@@ -407,7 +195,7 @@ def simulate_burst(
     elif isinstance(scene, str):
         raise ValueError(f"scene must be an image or one of {', '.join(SCENES)}, got {scene!r}")
     else:
-        raster = _fit_scene(np.asarray(scene, np.float32), raster_shape, colour=colour)
+        raster = fit_scene(np.asarray(scene, np.float32), raster_shape, colour=colour)
     if optics_sigma_px > 0:
         import cv2
 
@@ -466,7 +254,7 @@ def _moving_object(raster, fraction, n_frames, shape, scale, margin, rng, homogr
     offsets = steps + rng.normal(0.0, 1.0, (n_frames, 2))
     if homographies is not None:
         centred = np.array([*centre, 1.0])
-        offsets = np.array([parallax * ((H @ centred)[:2] / (H @ centred)[2] - centre) for H in homographies])
+        offsets = np.array([parallax * (project(H, centred[:, None])[:, 0] - centre) for H in homographies])
     offsets[0] = 0.0
     return texture * alpha_c, alpha, offsets
 
@@ -477,25 +265,3 @@ def _mosaic(rgb: np.ndarray, cfa: str) -> np.ndarray:
         dy, dx = divmod(position, 2)
         out[dy::2, dx::2] = rgb[dy::2, dx::2, CFA_CHANNEL[colour]]
     return out
-
-
-def _fit_scene(image: np.ndarray, shape: tuple[int, int], *, colour: bool) -> np.ndarray:
-    """Resize (keeping aspect) and centre-crop a scene image to cover ``shape``."""
-    import cv2
-
-    if image.ndim == 3 and not colour:
-        image = image[:, :, :3].mean(axis=2)
-    elif image.ndim == 2 and colour:
-        image = np.repeat(image[:, :, None], 3, axis=2)
-    elif image.ndim == 3:
-        image = image[:, :, :3] if image.shape[2] >= 3 else np.repeat(image[:, :, :1], 3, axis=2)
-    factor = max(shape[0] / image.shape[0], shape[1] / image.shape[1])
-    size = (max(shape[1], int(np.ceil(image.shape[1] * factor))), max(shape[0], int(np.ceil(image.shape[0] * factor))))
-    resized = cv2.resize(np.ascontiguousarray(image), size, interpolation=cv2.INTER_CUBIC)
-    y0, x0 = (resized.shape[0] - shape[0]) // 2, (resized.shape[1] - shape[1]) // 2
-    return np.clip(resized[y0 : y0 + shape[0], x0 : x0 + shape[1]], 0.0, 1.0).astype(np.float32)
-
-
-def with_overrides(sensor: Sensor, **changes) -> Sensor:
-    """``sensor`` with the given fields replaced (None values are ignored)."""
-    return dataclasses.replace(sensor, **{k: v for k, v in changes.items() if v is not None})

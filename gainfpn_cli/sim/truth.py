@@ -20,9 +20,12 @@ import numpy as np
 
 from .. import __version__
 from ..errors import InputError
+from ..files import ATTR_CFA, ATTR_SATURATION, read_exr_planes, write_exr, write_text
 from ..outdir import OutputPlan, prepare, staged
-from ..files import ATTR_CFA, ATTR_SATURATION, read_exr_planes, read_scene, write_dng, write_exr, write_text
-from .simulate import Burst, Sensor, simulate_burst
+from .dng import write_dng
+from .scenes import read_scene
+from .sensor import Sensor
+from .simulate import Burst, simulate_burst
 
 FORMATS = ("exr", "dng")
 

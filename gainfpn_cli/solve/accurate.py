@@ -35,11 +35,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .result import CONFIDENCE_SCALE, GainResult
 from ..errors import EstimationError
-from ..parallel import map_ordered
-from ..geometry.warps import FieldWarp, GlobalWarp, as_warp
 from ..geometry.resample import KERNELS, bounded, low_pass, positions, sample, valid_samples
+from ..geometry.warps import STILL_PX, FieldWarp, GlobalWarp, as_warp, trajectory_rms
+from ..parallel import map_ordered
+from .result import CONFIDENCE_SCALE, GainResult
+
 
 @dataclass(frozen=True)
 class AccurateOptions:
@@ -210,15 +211,10 @@ def solve_accurate(
 
 
 def _check_motion(homographies: np.ndarray, shape: tuple[int, int]) -> None:
-    h, w = shape
-    corners = np.array([[0, 0, 1], [w - 1, 0, 1], [0, h - 1, 1], [w - 1, h - 1, 1]], float).T
-    moved = []
-    for H in homographies:
-        p = H @ corners
-        moved.append(np.sqrt(np.mean(np.sum((p[:2] / p[2] - corners[:2]) ** 2, axis=0))))
-    if max(moved) < 0.01:
+    moved = [trajectory_rms(H, np.eye(3), shape, step=8) for H in homographies]
+    if max(moved) < STILL_PX:
         raise EstimationError(
-            "no motion: every frame is within 0.01 px of the reference, so the gain cannot be "
+            f"no motion: every frame is within {STILL_PX} px of the reference, so the gain cannot be "
             "estimated (pan or shake the camera during the burst)"
         )
 

@@ -19,13 +19,10 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..errors import EstimationError
+from ..geometry.warps import STILL_PX
 from ..parallel import map_ordered
-from .result import GainResult
 from .kkt import DENSE_MAX, OK, REGULARISED, UNESTIMATED, SolveOptions, _solve_gauged
-
-#: A frame whose RMS displacement from the reference is below this (px) adds
-#: no information about k: it is left out and counted.
-STATIC_RMS_PX = 0.01
+from .result import GainResult
 
 
 @dataclass(frozen=True)
@@ -80,7 +77,7 @@ def solve_paper(
     moving = _moving_frames(positions)
     if not moving.any():
         raise EstimationError(
-            f"no motion: every frame is within {STATIC_RMS_PX} px RMS of the reference, "
+            f"no motion: every frame is within {STILL_PX} px RMS of the reference, "
             "so the gain cannot be estimated (pan or shake the camera during the burst)"
         )
     others, positions = frames[1:][moving], positions[moving]
@@ -119,7 +116,7 @@ def _moving_frames(positions: np.ndarray) -> np.ndarray:
     d2 = (positions[..., 0] - xs) ** 2 + (positions[..., 1] - ys) ** 2
     with np.errstate(invalid="ignore"):
         rms = np.sqrt(np.nanmean(d2.reshape(len(positions), -1), axis=1))
-    return np.nan_to_num(rms, nan=0.0) >= STATIC_RMS_PX
+    return np.nan_to_num(rms, nan=0.0) >= STILL_PX
 
 
 def _strips(frame0, others, positions, block_size, options, saturation, workers) -> list[_Strip]:

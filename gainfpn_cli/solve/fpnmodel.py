@@ -40,8 +40,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .result import sigma_from_confidence
 from ..metrics import robust_spread
+from .result import sigma_from_confidence
 
 MODELS = ("none", "row", "column", "column+row", "pixel")
 

@@ -199,7 +199,7 @@ def run(out_dir: Path, *, quick: bool, groups: tuple[str, ...] = (), progress=No
 
 def _sensor(spec: BurstSpec):
     """The bench sensor; with column FPN, 3 % pixel + the column part (docs/method.md section 4's second case)."""
-    from ..sim.simulate import PRESETS, with_overrides
+    from ..sim.sensor import PRESETS, with_overrides
 
     return with_overrides(PRESETS[spec.sensor], fpn_pixel=0.03 if spec.fpn_column else None,
                           fpn_column=spec.fpn_column or None)
@@ -216,7 +216,8 @@ def _make_burst(spec: BurstSpec, folder: Path) -> None:
 
 def _simulate(spec: BurstSpec, seed: int):
     """The burst ``spec`` describes, drawn with ``seed`` (a motion point draws several)."""
-    from ..sim.simulate import Shake, simulate_burst
+    from ..sim.motion import Shake
+    from ..sim.simulate import simulate_burst
 
     shake = Shake(wobble_px=spec.wobble_px, distortion_px=spec.distortion_px, **MOTIONS[spec.motion])
     return simulate_burst(shape=spec.shape, n_frames=spec.n_frames, seed=seed, scene=spec.scene,
@@ -347,7 +348,8 @@ def _scores(k: np.ndarray, folder: Path, truth) -> dict:
 
 def _flat_field_k(spec: BurstSpec) -> np.ndarray:
     """What a lab with a flat-field rig gets from as many frames: uniformly lit, averaged."""
-    from ..sim.simulate import Shake, simulate_burst
+    from ..sim.motion import Shake
+    from ..sim.simulate import simulate_burst
 
     sensor = _sensor(spec)
     flat = simulate_burst(shape=spec.shape, n_frames=spec.n_frames, seed=spec.seed, sensor=sensor, supersample=1,
@@ -416,10 +418,10 @@ def background_rms(H: np.ndarray, burst, t: int) -> float:
 
 
 def _workers(folder: Path) -> dict:
-    from ..solve.accurate import solve_accurate
-    from ..sim.truth import load_truth
-
     import cv2
+
+    from ..sim.truth import load_truth
+    from ..solve.accurate import solve_accurate
 
     truth = load_truth(folder)
     frames, saturation = _frames(folder)
