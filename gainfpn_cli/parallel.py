@@ -1,9 +1,10 @@
 """Run independent tasks on local processes (or a Dask cluster), in order, with progress.
 
-Inside :func:`dask_backend` the tasks go to a Dask cluster instead (each
+Given a :class:`DaskExecutor`, the tasks go to a Dask cluster instead (each
 task computes exactly what it computes locally: results are bit-identical
 when the cluster's workers run their native libraries single-threaded, as
-:func:`batch.local_cluster` starts them).
+:func:`tools.batch.local_cluster` starts them). The executor is handed in by
+the caller; nothing is read from a module global.
 
 The pool is ``multiprocessing.Pool``, whose ``terminate`` stops the workers
 at once on an error or an interrupt. It uses the ``spawn`` start method:
@@ -19,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+from dataclasses import dataclass
 from typing import Callable, Iterable, Iterator, Sequence, TypeVar
 
 T = TypeVar("T")
@@ -71,16 +73,17 @@ def map_ordered(
     *,
     workers: int = 2,
     progress: Callable[[int], None] | None = None,
+    executor: DaskExecutor | None = None,
 ) -> list[R]:
-    """``[fn(t) for t in tasks]``, on ``workers`` processes when more than one.
+    """``[fn(t) for t in tasks]``, on ``workers`` processes when more than one, or on ``executor``.
 
     ``fn`` must be a module-level function; results come back in task order.
     ``progress(1)`` is called as each task finishes.
     """
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
-    if _DASK_CLIENT is not None:
-        return _on_dask(_DASK_CLIENT, fn, tasks, progress)
+    if executor is not None:
+        return executor.map(fn, tasks, progress)
     if workers == 1 or len(tasks) <= 1:
         return list(_serial(fn, tasks, progress))
     import multiprocessing as mp
@@ -126,19 +129,17 @@ def _serial(fn: Callable[[T], R], tasks: Iterable[T], progress) -> Iterable[R]:
         yield result
 
 
-#: The Dask client :func:`map_ordered` sends tasks to, inside :func:`dask_backend`.
-_DASK_CLIENT = None
+@dataclass(frozen=True)
+class DaskExecutor:
+    """Run :func:`map_ordered`'s tasks on a Dask cluster instead of local processes: hand it to
+    ``pipeline.estimate(..., executor=...)`` (``estimate --scheduler``). Each task computes exactly
+    what it computes locally, so results are bit-identical when the cluster's workers run their
+    native libraries single-threaded (as :func:`tools.batch.local_cluster` starts them)."""
 
+    client: object
 
-@contextlib.contextmanager
-def dask_backend(client) -> Iterator[None]:
-    """Within this block :func:`map_ordered` runs its tasks on ``client``'s cluster (``workers`` is ignored)."""
-    global _DASK_CLIENT
-    saved, _DASK_CLIENT = _DASK_CLIENT, client
-    try:
-        yield
-    finally:
-        _DASK_CLIENT = saved
+    def map(self, fn, tasks, progress=None) -> list:
+        return _on_dask(self.client, fn, tasks, progress)
 
 
 def _on_dask(client, fn, tasks, progress) -> list:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import platform
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -89,18 +90,45 @@ def load_burst(inputs, cfg: Config, *, progress: Progress | None = None) -> Load
                        dark_stamp, time.perf_counter() - t0, info.layout()[4])
 
 
-def estimate(burst: LoadedBurst, cfg: Config, *, progress: Progress | None = None) -> Estimate:
+def estimate(burst: LoadedBurst, cfg: Config, *, progress: Progress | None = None, executor=None) -> Estimate:
     """Motion, solve and FPN model for every plane; the hold-out check; a report.
 
-    BLAS and OpenMP run single-threaded meanwhile (:func:`parallel.single_threaded_math`),
-    whoever calls, so every caller gets the command's speed and bit-identical results."""
+    The solver's tasks run on ``cfg.solver.workers`` local processes, or on ``executor`` (a
+    :class:`parallel.DaskExecutor`). BLAS and OpenMP run single-threaded meanwhile
+    (:func:`parallel.single_threaded_math`), whoever calls, so every caller gets the command's
+    speed and bit-identical results."""
     from .parallel import single_threaded_math
 
+    solver = _Solver.from_config(cfg.solver, mosaic=burst.cfa is not None, executor=executor)
     with single_threaded_math():
-        return _estimate(burst, cfg, progress)
+        return _estimate(burst, cfg, solver, progress)
 
 
-def _estimate(burst: LoadedBurst, cfg: Config, progress: Progress | None) -> Estimate:
+@dataclass(frozen=True)
+class _Solver:
+    """The solver section of the config, unpacked once per estimate into the solvers' options."""
+
+    method: str
+    paper: SolveOptions
+    block_size: int
+    accurate: AccurateOptions
+    fpn_model: str | None  # None: chosen by AIC
+    gain_range: tuple[float, float]
+    workers: int
+    executor: object = None
+
+    @classmethod
+    def from_config(cls, s, *, mosaic: bool, executor=None) -> "_Solver":
+        accurate = AccurateOptions(kernel=s.interpolation, anchors=s.anchors, partners=s.partners, rtol=s.rtol,
+                                   gauge_sigma=s.gauge_sigma, tile=s.tile, robust_rounds=s.robust_rounds,
+                                   gain_range=s.gain_range,
+                                   phase_weights=s.phase_weights == "all" or (s.phase_weights == "auto" and mosaic))
+        return cls(s.method, SolveOptions(lam=s.lam, max_condition=s.max_condition, k_range=s.gain_range),
+                   s.block_size, accurate, None if s.fpn_model == "auto" else s.fpn_model, s.gain_range, s.workers,
+                   executor)
+
+
+def _estimate(burst: LoadedBurst, cfg: Config, solver: _Solver, progress: Progress | None) -> Estimate:
     timings: dict[str, float] = {}
     warnings: list[str] = []
     order = [burst.reference] + [i for i in range(len(burst.paths)) if i != burst.reference]
@@ -138,7 +166,7 @@ def _estimate(burst: LoadedBurst, cfg: Config, progress: Progress | None) -> Est
     t0 = time.perf_counter()
     n_fit = len(fit_frames)
     fit = in_frame.select(range(n_fit))
-    k, confidence, plane_reports = _solve_planes(burst, frames, excluded, exposures, n_fit, fit, cfg, progress)
+    k, confidence, plane_reports = _solve_planes(burst, frames, excluded, exposures, n_fit, fit, solver, progress)
     for round_ in range(1, cfg.motion.refine_rounds + 1):
         corrected, _ = motion_frames(frames * (k / np.float32(power_of_two_scale(frames[0])))[None], burst.cfa)
         # the model is chosen again: on frames without their gain pattern the choice can change (a forced
@@ -151,13 +179,13 @@ def _estimate(burst: LoadedBurst, cfg: Config, progress: Progress | None) -> Est
         excluded, moving = _moving(frames, corrected, motion.warp, burst.cfa, cfg, exposures)
         del corrected
         fit = in_frame.select(range(n_fit))
-        k, confidence, plane_reports = _solve_planes(burst, frames, excluded, exposures, n_fit, fit, cfg, progress)
+        k, confidence, plane_reports = _solve_planes(burst, frames, excluded, exposures, n_fit, fit, solver, progress)
     timings["solve_s"] = time.perf_counter() - t0
 
     holdout_report = None
     if holdout:
         ratio = holdout_ratio(frames, excluded, exposures, in_frame, k, saturation=burst.saturation,
-                              grids=_grids(burst, frames, cfg.solver.method))
+                              grids=_grids(burst, frames, solver.method))
         holdout_report = {"frame": burst.paths[order[-1]].name, "residual_ratio": ratio, "passed": ratio < 1.0}
         timings["holdout_s"] = time.perf_counter() - t0 - timings["solve_s"]
         if ratio >= 1.0:
@@ -297,18 +325,17 @@ def _grids(burst: LoadedBurst, frames: np.ndarray, method: str) -> list:
     return list(solve_grids(burst.cfa, burst.channels, frames.shape[1:3], greens_together=method == "accurate"))
 
 
-def _solve_planes(burst, frames, excluded, exposures, n_fit, in_frame, cfg, progress):
+def _solve_planes(burst, frames, excluded, exposures, n_fit, in_frame, solver: _Solver, progress):
     """k and confidence of every plane from the first ``n_fit`` frames, with the FPN model and the gauge."""
-    s = cfg.solver
     k = np.ones(frames.shape[1:], np.float32)
     confidence = np.zeros(frames.shape[1:], np.float32)
     fit = frames[:n_fit]
     left_out = None if excluded is None else np.broadcast_to(excluded[:n_fit, ..., None], fit.shape)  # every channel
     solved = {}
-    for grid in _grids(burst, frames, s.method):
+    for grid in _grids(burst, frames, solver.method):
         result, info = _solve_grid(grid.gather(fit), None if left_out is None else grid.gather(left_out),
-                                   in_frame.conjugate(grid.S), burst.saturation, cfg, progress, grid.name,
-                                   mosaic=burst.cfa is not None, exposures=exposures[:n_fit])
+                                   in_frame.conjugate(grid.S), burst.saturation, solver, progress, grid.name,
+                                   exposures=exposures[:n_fit])
         grid.scatter(k, result.k)
         grid.scatter(confidence, result.confidence)
         solved.update({name: {**info, "solved_on": grid.name} for name in grid.positions})
@@ -316,22 +343,21 @@ def _solve_planes(burst, frames, excluded, exposures, n_fit, in_frame, cfg, prog
     for name, pick, _ in plane_views(burst.cfa, burst.channels):  # the gauge and the FPN model, plane by plane
         info, structured = dict(solved[name]), False
         kp = pick(k)
-        if s.method == "accurate":
-            model = select_model(kp, pick(confidence), force=None if s.fpn_model == "auto" else s.fpn_model)
+        if solver.method == "accurate":
+            model = select_model(kp, pick(confidence), force=solver.fpn_model)
             info.update(fpn_model=model.chosen, fpn_model_aic=model.scores, input_fpn_percent=model.split)
             kp, structured = model.k, model.chosen not in ("pixel", "none")
-        result = physical(GainResult(kp, pick(confidence), {}), s.gain_range, structured)
+        result = physical(GainResult(kp, pick(confidence), {}), solver.gain_range, structured)
         pick(k)[...] = result.k
         pick(confidence)[...] = result.confidence
         reports[name] = info
     return k, confidence, reports
 
 
-def _solve_grid(frames, excluded, motion, saturation, cfg, progress, name, mosaic=False,
+def _solve_grid(frames, excluded, motion, saturation, solver: _Solver, progress, name,
                 exposures=None) -> tuple[GainResult, dict]:
-    s = cfg.solver
     update = progress(f"solve {name}", 0) if progress else None
-    if s.method == "paper":
+    if solver.method == "paper":
         if excluded is not None:  # the published form takes zeroed pixels as missing
             frames = np.where(excluded, np.float32(0), frames)
         if exposures is not None and np.any(exposures != 1.0):  # clipped pixels marked missing before scaling
@@ -341,16 +367,11 @@ def _solve_grid(frames, excluded, motion, saturation, cfg, progress, name, mosai
         region = (0, 0) + frames.shape[1:]
         positions = np.stack([warp_positions(motion.pair(0, t, region), frames.shape[1:])
                               for t in range(1, len(frames))])
-        options = SolveOptions(lam=s.lam, max_condition=s.max_condition, k_range=s.gain_range)
-        result = solve_paper(frames, positions, block_size=s.block_size, options=options, saturation=saturation,
-                             workers=s.workers, progress=update)
+        result = solve_paper(frames, positions, block_size=solver.block_size, options=solver.paper,
+                             saturation=saturation, workers=solver.workers, progress=update, executor=solver.executor)
         return result, {"method": "paper", **result.stats}
-    options = AccurateOptions(kernel=s.interpolation, anchors=s.anchors, partners=s.partners, rtol=s.rtol,
-                              gauge_sigma=s.gauge_sigma, tile=s.tile,
-                              robust_rounds=s.robust_rounds, gain_range=s.gain_range,
-                              phase_weights=s.phase_weights == "all" or (s.phase_weights == "auto" and mosaic))
-    result = solve_accurate(frames, motion, options=options, saturation=saturation, excluded=excluded,
-                            exposures=exposures, workers=s.workers, progress=update)
+    result = solve_accurate(frames, motion, options=solver.accurate, saturation=saturation, excluded=excluded,
+                            exposures=exposures, workers=solver.workers, progress=update, executor=solver.executor)
     return result, {"method": "accurate", **result.stats}
 
 

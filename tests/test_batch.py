@@ -165,14 +165,13 @@ def test_a_batch_on_a_local_cluster_survives_a_killed_worker_and_matches_the_loc
 
 def test_the_solver_runs_its_tiles_on_dask_bit_identically(bursts, cluster):
     from gainfpn_cli.config import load_config
-    from gainfpn_cli.parallel import dask_backend
+    from gainfpn_cli.parallel import DaskExecutor
     from gainfpn_cli.pipeline import estimate, load_burst
 
     cfg = load_config(overrides={"solver.tile": 32})  # several tiles
     burst = load_burst([bursts / "b1"], cfg)
     local = estimate(burst, cfg)
-    with dask_backend(cluster):
-        remote = estimate(burst, cfg)
+    remote = estimate(burst, cfg, executor=DaskExecutor(cluster))
     assert local.report["planes"]["Y"]["tiles"] > 4
     assert np.array_equal(local.k, remote.k) and np.array_equal(local.confidence, remote.confidence)
 

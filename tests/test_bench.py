@@ -16,7 +16,7 @@ def test_a_small_plan_runs_every_kind_of_point(tmp_path, monkeypatch):
               Point("flow_error", "0.8 px", base, kind="flow-error", flow_error_px=0.8),
               Point("motion_accuracy", "motion", BurstSpec(shape=(120, 160), n_frames=4, scene="procedural",
                                                            motion="25 px drift"), kind="motion", seeds=2)]
-    monkeypatch.setattr(bench, "plan", lambda quick, groups=(): points)
+    monkeypatch.setattr(bench.measure, "plan", lambda quick, groups=(): points)  # the plan run() follows
     rows = {r["label"]: r for r in bench.run(tmp_path, quick=True)}
     floor, flat, fast, flow, motion = (rows[k] for k in ("floor", "flat field", "fast", "0.8 px", "motion"))
     assert floor["residual_fpn_percent"] == pytest.approx(0.0, abs=1e-3)  # the true gains

@@ -223,12 +223,12 @@ def test_progress_bars_only_on_a_terminal(monkeypatch):
     from gainfpn_cli import cli
 
     monkeypatch.setattr(sys.stderr, "isatty", lambda: False)
-    assert cli._progress(quiet=False) is None  # a make or CI log gets no carriage-return redraws
+    assert cli.progress_bars(quiet=False) is None  # a make or CI log gets no carriage-return redraws
     monkeypatch.setattr(sys.stderr, "isatty", lambda: True)
-    stage = cli._progress(quiet=False)
-    assert callable(stage) and cli._progress(quiet=True) is None
+    stage = cli.progress_bars(quiet=False)
+    assert callable(stage) and cli.progress_bars(quiet=True) is None
     stage("read", 2)(1)
-    cli._close(stage)
+    cli.close(stage)
 
 
 def test_messages_never_show_python_none(tmp_path):

@@ -129,6 +129,7 @@ def solve_accurate(
     exposures=None,
     workers: int = 2,
     progress=None,
+    executor=None,
 ) -> GainResult:
     """Estimate ``k`` for a burst whose motion is known.
 
@@ -145,6 +146,11 @@ def solve_accurate(
     exposures : sequence of float, optional
         Each frame's exposure relative to the reference (:mod:`exposure`):
         frames are compared divided by it. None: all exposed alike.
+    workers : int
+        Local processes that solve the tiles (the tiling depends only on the frame size and
+        ``options.tile``, so the result does not depend on it).
+    executor : parallel.DaskExecutor, optional
+        Solve the tiles there instead.
     """
     frames = np.asarray(frames, dtype=np.float32)
     if frames.ndim != 3 or frames.shape[0] < 2:
@@ -172,7 +178,7 @@ def solve_accurate(
         )
     sat = np.inf if saturation is None else float(saturation)
     tiles = _tiles(frames, excluded, motion, sat, options, exposures)
-    results = map_ordered(_solve_tile, tiles, workers=workers, progress=progress)
+    results = map_ordered(_solve_tile, tiles, workers=workers, progress=progress, executor=executor)
     # float32 frame-sized arrays (a 12 MP frame: 48 MB each); tiles' results are freed as they are blended
     k_sum = np.zeros((h, w), np.float32)
     conf_sum = np.zeros((h, w), np.float32)

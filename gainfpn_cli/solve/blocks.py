@@ -49,6 +49,7 @@ def solve_paper(
     saturation: float | None = None,
     workers: int = 2,
     progress=None,
+    executor=None,
 ) -> GainResult:
     """Estimate ``k`` block by block as published (paper eq. 5-6, bilinear).
 
@@ -64,6 +65,9 @@ def solve_paper(
     progress : callable, optional
         Called with the number of strips finished; ``progress.total`` is not
         needed (see :func:`n_tasks`).
+    workers, executor
+        Local processes that solve the strips, or a :class:`parallel.DaskExecutor` to solve
+        them on instead.
     """
     frames = np.asarray(frames, dtype=np.float32)
     positions = np.asarray(positions, dtype=np.float64)
@@ -83,7 +87,7 @@ def solve_paper(
     others, positions = frames[1:][moving], positions[moving]
     sat = np.inf if saturation is None else float(saturation)
     tasks = _strips(frames[0], others, positions, block_size, options, sat, workers)
-    results = map_ordered(_solve_strip, tasks, workers=workers, progress=progress)
+    results = map_ordered(_solve_strip, tasks, workers=workers, progress=progress, executor=executor)
     k = np.concatenate([r[0] for r in results], axis=0)
     status = np.concatenate([r[1] for r in results], axis=0)
     rows = sum(r[2] for r in results)
