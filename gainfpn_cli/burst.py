@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
 from .files import FileStamp
+from .report import Report
 
 #: progress(stage, total) -> update(n): the CLI's tqdm, or nothing
 Progress = Callable[[str, int], Callable[[int], None]]
@@ -30,7 +31,12 @@ class LoadedBurst:
 
 @dataclass(frozen=True)
 class Estimate:
-    k: np.ndarray  # (H, W, C) float32
-    confidence: np.ndarray  # (H, W, C) float32
-    report: dict = field(default_factory=dict)
-    warnings: list = field(default_factory=list)
+    """A gain map and its report: ``k`` and ``confidence`` ``(H, W, C)`` float32."""
+
+    k: np.ndarray
+    confidence: np.ndarray
+    report: Report
+
+    @property
+    def warnings(self) -> tuple[str, ...]:
+        return self.report.warnings

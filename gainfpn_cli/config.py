@@ -286,13 +286,14 @@ def load_config(
     *,
     preset: str | None = None,
     overrides: Mapping[str, Any] | None = None,
+    base: Config | None = None,
 ) -> Config:
-    """Effective config: defaults < ``preset`` < YAML file ``path`` < ``overrides``.
+    """Effective config: ``base`` (default: the defaults) < ``preset`` < YAML file ``path`` < ``overrides``.
 
     ``overrides`` maps dotted keys (``"solver.block_size"``) to values; keys
     whose value is None are skipped (a flag that was not given).
     """
-    cfg = Config()
+    cfg = base or Config()
     if preset is not None:
         cfg = parse_config(preset_text(preset), source=f"preset {preset}", base=cfg)
     if path is not None:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -31,6 +32,7 @@ from .files import (
 )
 from .outdir import OutputPlan, prepare, staged
 from .preview import write_preview
+from .report import Report
 
 
 def _gain_planes(k: np.ndarray, confidence: np.ndarray, channels: tuple[str, ...], cfa: str | None) -> dict:
@@ -43,29 +45,39 @@ def _gain_planes(k: np.ndarray, confidence: np.ndarray, channels: tuple[str, ...
     return planes
 
 
+@dataclass(frozen=True)
+class Written:
+    """An estimate's folder once written: its output plan and the report as written."""
+
+    plan: OutputPlan
+    report: Report
+
+
 #: What ``estimate`` writes into its output folder (``--overwrite`` replaces these names only).
 ESTIMATE_OUTPUTS = ("gain_map.exr", "corrected", "preview.png", "config.used.yaml", "report.json")
 
 
-def estimate_plan(out_dir: Path, paths, cfg: Config, *, overwrite: bool = False) -> OutputPlan:
-    """Check ``out_dir`` for an estimate of the frames ``paths`` before any work (:func:`outdir.prepare`)."""
+def estimate_plan(out_dir: Path, paths, cfg: Config, *, overwrite: bool = False, files=None) -> OutputPlan:
+    """Check ``out_dir`` for an estimate of the frames ``paths`` before any work (:func:`outdir.prepare`);
+    ``files`` are the frames' files if not ``paths`` (none for frames given as an array)."""
     _check_unique_stems(list(paths))
-    inputs = [*paths, *([cfg.input.dark] if cfg.input.dark else [])]
+    inputs = [*(paths if files is None else files), *([cfg.input.dark] if cfg.input.dark else [])]
     return prepare(out_dir, command="estimate", names=ESTIMATE_OUTPUTS, inputs=inputs, overwrite=overwrite)
 
 
 def write_estimate(result: Estimate, burst: LoadedBurst, cfg: Config, out_dir: Path, *, overwrite: bool = False,
-                   progress: Progress | None = None) -> OutputPlan:
+                   progress: Progress | None = None) -> Written:
     """gain_map.exr, corrected/*.exr, report.json, config.used.yaml and preview.png, all or nothing.
 
-    Only these names are replaced in ``out_dir`` (and an earlier evaluation of them removed); the
-    returned plan lists what else the folder holds, untouched."""
-    plan = estimate_plan(out_dir, burst.paths, cfg, overwrite=overwrite)
+    Only these names are replaced in ``out_dir`` (and an earlier evaluation of them removed).
+    Returns the output plan (what else the folder holds, untouched) and the report as written
+    (with the write and total times)."""
+    plan = estimate_plan(out_dir, burst.paths, cfg, overwrite=overwrite, files=[s.path for s in burst.stamps])
     t0 = time.perf_counter()
     config_text = dump_config(cfg)
     metadata = {"gainfpn:version": __version__, "gainfpn:config": config_text,
                 "gainfpn:inputs": json.dumps([str(p.absolute()) for p in burst.paths]),
-                "gainfpn:motion_model": result.report["motion"]["model"]}
+                "gainfpn:motion_model": result.report.motion.model}
     if burst.dark is not None:  # `apply` subtracts the same dark frame before k
         metadata[ATTR_DARK] = json.dumps({"path": burst.dark.path, "sha256": burst.dark.sha256})
     if burst.cfa:
@@ -83,11 +95,9 @@ def write_estimate(result: Estimate, burst: LoadedBurst, cfg: Config, out_dir: P
             write_preview(tmp / "preview.png", result.k, result.confidence, report=result.report,
                           name=burst_name(burst.paths), cfa=burst.cfa, channels=burst.channels)
         write_text(tmp / "config.used.yaml", config_text)
-        timings = result.report["timings"]
-        timings["write_s"] = time.perf_counter() - t0
-        timings["total_s"] = sum(v for key, v in timings.items() if key != "total_s")
-        write_text(tmp / "report.json", json.dumps(result.report, indent=1))
-    return plan
+        report = result.report.with_timings(write_s=time.perf_counter() - t0)
+        write_text(tmp / "report.json", json.dumps(report.to_json(), indent=1))
+    return Written(plan, report)
 
 
 #: Header attribute of a gain map estimated on dark-subtracted frames: that dark frame's path and digest.

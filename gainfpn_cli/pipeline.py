@@ -23,6 +23,7 @@ from .geometry.resample import positions as warp_positions
 from .motion.estimate import estimate_motion
 from .motion.exposure import relative_exposures, rough_exposures, significant
 from .motion.masks import moving_masks
+from .report import Holdout, Motion, Prnu, Report, status_of
 from .solve.accurate import AccurateOptions, power_of_two_scale, solve_accurate
 from .solve.blocks import solve_paper
 from .solve.fpnmodel import select_model
@@ -186,7 +187,7 @@ def _estimate(burst: LoadedBurst, cfg: Config, solver: _Solver, progress: Progre
     if holdout:
         ratio = holdout_ratio(frames, excluded, exposures, in_frame, k, saturation=burst.saturation,
                               grids=_grids(burst, frames, solver.method))
-        holdout_report = {"frame": burst.paths[order[-1]].name, "residual_ratio": ratio, "passed": ratio < 1.0}
+        holdout_report = Holdout(burst.paths[order[-1]].name, ratio, ratio < 1.0)
         timings["holdout_s"] = time.perf_counter() - t0 - timings["solve_s"]
         if ratio >= 1.0:
             warnings.append(f"the estimate does not reduce the brightness-constancy residual on the held-out frame "
@@ -196,67 +197,35 @@ def _estimate(burst: LoadedBurst, cfg: Config, solver: _Solver, progress: Progre
     sigma = sigma_from_confidence(confidence)
     # only the accurate solver's confidence is a calibrated standard error
     calibrated = (confidence > 0).any() and all(p["method"] == "accurate" for p in plane_reports.values())
-    report = {
-        "version": __version__,
-        "status": status(holdout_report),
-        # the sensor's gain nonuniformity as estimated (EMVA 1288 parts), and what correction leaves
-        "prnu_percent": prnu_percent(plane_reports),
-        "predicted_residual_percent": float(100 * np.median(sigma[confidence > 0])) if calibrated else None,
-        "holdout": holdout_report,
-        "estimated_percent": float(100 * (confidence > 0).mean()),
-        "inputs": [s.to_json() for s in burst.stamps] or [str(p.absolute()) for p in burst.paths],
-        "dark": None if burst.dark is None else burst.dark.to_json(),
-        "white_level_dn": burst.white,
-        "reference": burst.paths[burst.reference].name,
-        "motion": {
-            "model": motion.model,
-            "reason": motion.reason,
-            # the layers model: each layer besides the dominant one, its model and tracked points
-            "layers": motion.layers,
-            "frames": [{"frame": burst.paths[order[i + 1]].name, **{k_: v for k_, v in f.items() if k_ != "gric"},
-                        "homography": frame_homography(motion.homographies[i + 1], S_motion)}
-                       for i, f in enumerate(motion.per_frame)],
-            "refine_rounds": cfg.motion.refine_rounds,
-            # per frame, reference first: pixels left out because they do not follow the global motion
-            "moving_percent": moving,
-        },
-        # per frame, reference first: its exposure relative to the reference's; "relative" (the measured
-        # one where it differs from 1 significantly) is divided out
-        "exposure": exposure_report,
-        "planes": plane_reports,
-        "config": config_dict(cfg),
-        "timings": {"read_s": burst.read_s, **timings},
-        "versions": _versions(),
-        "warnings": warnings,
-    }
-    return Estimate(k.astype(np.float32), confidence.astype(np.float32), report, warnings)
-
-
-def status(holdout: dict | None) -> str:
-    """``accepted`` (the hold-out frame confirms the map), ``rejected`` (it did not: k = 1 was
-    written) or ``unchecked`` (no frame held out)."""
-    if holdout is None:
-        return "unchecked"
-    return "accepted" if holdout["passed"] else "rejected"
-
-
-def prnu_percent(plane_reports: dict) -> dict:
-    """The input gain nonuniformity in EMVA 1288's parts (percent of the mean gain): ``pixel``,
-    ``column`` and ``row`` (even/odd rows), their quadrature sum ``total``, per plane and combined
-    over the planes (root mean square). From the FPN model's split (the accurate method; the pixel
-    part has the estimation noise removed); None for the paper method, which has no split."""
-    planes = {name: p["input_fpn_percent"] for name, p in plane_reports.items() if "input_fpn_percent" in p}
-    if not planes:
-        return {"total": None, "pixel": None, "column": None, "row": None, "planes": {}}
-
-    def with_total(parts: dict) -> dict:
-        parts = {part: float(parts[part]) for part in ("pixel", "column", "row")}
-        return {"total": float(np.sqrt(sum(v**2 for v in parts.values()))), **parts}
-
-    per_plane = {name: with_total(parts) for name, parts in planes.items()}
-    combined = with_total({part: np.sqrt(np.mean([p[part] ** 2 for p in per_plane.values()]))
-                           for part in ("pixel", "column", "row")})
-    return {**combined, "planes": per_plane}
+    report = Report(
+        status=status_of(holdout_report),
+        prnu_percent=Prnu.combined({name: p["input_fpn_percent"] for name, p in plane_reports.items()
+                                    if "input_fpn_percent" in p}),
+        predicted_residual_percent=float(100 * np.median(sigma[confidence > 0])) if calibrated else None,
+        holdout=holdout_report,
+        estimated_percent=float(100 * (confidence > 0).mean()),
+        inputs=burst.stamps,
+        dark=burst.dark,
+        white_level_dn=burst.white,
+        reference=burst.paths[burst.reference].name,
+        motion=Motion(
+            model=motion.model,
+            reason=motion.reason,
+            layers=motion.layers,
+            frames=[{"frame": burst.paths[order[i + 1]].name, **{k_: v for k_, v in f.items() if k_ != "gric"},
+                     "homography": frame_homography(motion.homographies[i + 1], S_motion)}
+                    for i, f in enumerate(motion.per_frame)],
+            refine_rounds=cfg.motion.refine_rounds,
+            moving_percent=moving,
+        ),
+        exposure=exposure_report,
+        planes=plane_reports,
+        config=config_dict(cfg),
+        timings={"read_s": burst.read_s, **timings},
+        versions=_versions(),
+        warnings=tuple(warnings),
+    )
+    return Estimate(k.astype(np.float32), confidence.astype(np.float32), report)
 
 
 def _track(motion_images, burst, cfg, progress) -> tuple:

@@ -14,7 +14,8 @@ import numpy as np
 
 from .errors import InputError
 from .metrics import robust_spread
-from .summary import holdout_text, prnu_text
+from .report import Report
+from .summary import after_text, holdout_text, prnu_text
 
 #: Longest side (px) of the maps shown; a longer map is shown on every n-th pixel (not averaged,
 #: so that the pixel-level pattern stays visible).
@@ -23,7 +24,7 @@ PREVIEW_PX = 1024
 UNESTIMATED = "#b0b0b0"
 
 
-def write_preview(path: Path, k: np.ndarray, confidence: np.ndarray, *, report: dict, name: str,
+def write_preview(path: Path, k: np.ndarray, confidence: np.ndarray, *, report: Report, name: str,
                   cfa: str | None = None, channels: tuple[str, ...] = ("Y",)) -> None:
     """Draw the first plane of ``k`` ``(H, W, C)`` and its confidence into ``path`` (PNG).
 
@@ -75,11 +76,9 @@ def write_preview(path: Path, k: np.ndarray, confidence: np.ndarray, *, report: 
     hist_ax.set_ylabel("pixels")
     hist_ax.set_title(f"k of the estimated pixels\nrobust sigma {spread:.2f} %", fontsize=10)
 
-    after = report.get("predicted_residual_percent")
-    line1 = f"{name}: {len(report['inputs'])} frames, motion {report['motion']['model']}, FPN model " + \
-        "/".join(sorted({p.get("fpn_model", p["method"]) for p in report["planes"].values()}))
-    line2 = prnu_text(report["prnu_percent"]) + (f" -> predicted residual {after:.2f} %" if after is not None else "")
-    fig.suptitle(f"{line1}\n{line2}; {holdout_text(report['holdout'])}", fontsize=11)
+    line1 = f"{name}: {len(report.inputs)} frames, motion {report.motion.model}, FPN model {report.fpn_models}"
+    line2 = prnu_text(report.prnu_percent) + after_text(report)
+    fig.suptitle(f"{line1}\n{line2}; {holdout_text(report.holdout)}", fontsize=11)
 
     from .files import atomic_output
 

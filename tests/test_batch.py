@@ -172,18 +172,20 @@ def test_the_solver_runs_its_tiles_on_dask_bit_identically(bursts, cluster):
     burst = load_burst([bursts / "b1"], cfg)
     local = estimate(burst, cfg)
     remote = estimate(burst, cfg, executor=DaskExecutor(cluster))
-    assert local.report["planes"]["Y"]["tiles"] > 4
+    assert local.report.planes["Y"]["tiles"] > 4
     assert np.array_equal(local.k, remote.k) and np.array_equal(local.confidence, remote.confidence)
 
 
 def test_the_summary_gives_the_largest_exposure_difference_divided_out():
+    import dataclasses
+
+    from gainfpn_cli.report import Motion, Prnu, Report
     from gainfpn_cli.tools.batch import _row
 
-    report = {"planes": {"Y": {"method": "accurate", "fpn_model": "pixel", "input_fpn_percent": {"pixel": 5.0}}},
-              "warnings": [], "inputs": ["a", "b", "c"], "motion": {"model": "affine"},
-              "predicted_residual_percent": 0.6, "holdout": None, "status": "unchecked",
-              "prnu_percent": {"total": 5.0, "pixel": 5.0, "column": 0.0, "row": 0.0},
-              "exposure": {"mode": "per-frame", "relative": [1.0, 1.05, 0.97], "measured": [1.0, 1.05, 0.97]}}
+    report = Report(status="unchecked", motion=Motion("affine"), predicted_residual_percent=0.6,
+                    planes={"Y": {"method": "accurate", "fpn_model": "pixel", "input_fpn_percent": {"pixel": 5.0}}},
+                    prnu_percent=Prnu.of({"pixel": 5.0, "column": 0.0, "row": 0.0}),
+                    exposure={"mode": "per-frame", "relative": [1.0, 1.05, 0.97], "measured": [1.0, 1.05, 0.97]})
     assert _row("x", report, 1.0)["exposure_spread_percent"] == 5.0
-    del report["exposure"]  # a report written before exposures were measured
+    report = dataclasses.replace(report, exposure={"mode": "fixed"})  # one exposure: nothing divided out
     assert _row("x", report, 1.0)["exposure_spread_percent"] == 0.0

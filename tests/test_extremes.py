@@ -72,7 +72,7 @@ def test_three_frames_need_the_hold_out_switched_off():
     with pytest.raises(EstimationError, match="only 3 frames: .* set output.holdout: false"):
         _run(frames, burst.saturation)
     result = _run(frames, burst.saturation, **{"output.holdout": False})
-    assert result.report["holdout"] is None
+    assert result.report.holdout is None
     assert any("no frame checks the estimate" in w for w in result.warnings)
     assert _residual(result, burst) < 1.6
 
@@ -183,7 +183,7 @@ def test_sixteen_bit_full_scale_dng(tmp_path):
     _assert_sane(result, cfg)
     # report.json's homographies are in photosite coordinates, as the truth's:
     # measured worst frame 0.052 px (displacements 1.5-4.6 px)
-    reported = [np.array(f["homography"]) for f in result.report["motion"]["frames"]]
+    reported = [np.array(f["homography"]) for f in result.report.motion.frames]
     assert max(trajectory_rms(H, burst.homographies[t], burst.gain.shape) for t, H in enumerate(reported, 1)) < 0.1
 
 

@@ -38,7 +38,7 @@ DRIFT = Shake(translation_px=1.0, rotation_deg=0.2, drift_px=25)
 
 def _reported_worst(burst, report):
     """Worst frame's trajectory error of the homographies report.json gives (frame pixels)."""
-    Hs = [np.array(f["homography"]) for f in report["motion"]["frames"]]
+    Hs = [np.array(f["homography"]) for f in report.motion.frames]
     return max(trajectory_rms(H, burst.homographies[t], SHAPE) for t, H in enumerate(Hs, start=1))
 
 
@@ -59,7 +59,7 @@ def test_global_warp_is_sub_pixel_accurate_despite_fpn(seed, shake):
     result = estimate(loaded, load_config(overrides={"solver.workers": 1, "motion.refine_rounds": 1}))
     refined = _reported_worst(burst, result.report)
     assert refined <= 0.05
-    assert "refined on frames corrected by k (round 1)" in result.report["motion"]["reason"]
+    assert "refined on frames corrected by k (round 1)" in result.report.motion.reason
     if (seed, shake) in ((5, SHAKE4), (6, DRIFT)):  # where the first estimate misses, the round is what meets it
         assert _worst(burst, estimate_motion(frames)) > 0.05 > refined
 

@@ -93,7 +93,7 @@ def test_holdout_rejects_an_estimate_that_does_not_help(exr_burst, monkeypatch):
 
     monkeypatch.setattr(pipeline, "_solve_planes", harmful)
     result = estimate(burst, cfg)
-    assert result.report["holdout"]["passed"] is False and result.report["holdout"]["residual_ratio"] > 1
+    assert result.report.holdout.passed is False and result.report.holdout.residual_ratio > 1
     assert np.all(result.k == 1.0) and np.all(result.confidence == 0.0)
     assert "writing k = 1" in result.warnings[0]
 
@@ -103,7 +103,7 @@ def test_holdout_accepts_a_good_estimate(exr_burst):
     cfg = load_config(overrides={"solver.workers": 1})
     result = estimate(load_burst([folder], cfg), cfg)
     # 5 % FPN against ~1 % temporal noise: k must cut the held-out residual well below 1
-    assert result.report["holdout"]["passed"] and result.report["holdout"]["residual_ratio"] < 0.5
+    assert result.report.holdout.passed and result.report.holdout.residual_ratio < 0.5
 
 
 def test_existing_output_is_not_mixed(exr_burst, tmp_path):
@@ -199,7 +199,7 @@ def test_a_moving_object_is_left_out_of_the_solve(tmp_path, seed):
         k = result.k[..., 0]
         off = (result.confidence[..., 0] > 0) & ~burst.moving[0] & metrics.interior_mask(k.shape, 8)
         ratios[mask] = metrics.mse(frame0, burst.ideal[0], off) / metrics.mse(k * frame0, burst.ideal[0], off)
-        moving = result.report["motion"]["moving_percent"]
+        moving = result.report.motion.moving_percent
         assert (moving is None) if not mask else (len(moving) == 6 and all(8 < m < 30 for m in moving))
     assert ratios[True] >= 1.6 * ratios[False] and ratios[True] >= 9, ratios
 
@@ -223,8 +223,8 @@ def test_a_nearer_plane_is_corrected_through_its_own_layer(tmp_path):
         ratios[model] = metrics.mse(frame0, burst.ideal[0], interior) / metrics.mse(k * frame0, burst.ideal[0], interior)
         on_disk[model] = metrics.mse(frame0, burst.ideal[0], disk) / metrics.mse(k * frame0, burst.ideal[0], disk)
         if model == "auto":
-            assert result.report["motion"]["model"] == "layers"
-            assert result.report["motion"]["layers"] == [{"model": "shift", "points": pytest.approx(40, abs=30)}]
+            assert result.report.motion.model == "layers"
+            assert result.report.motion.layers == [{"model": "shift", "points": pytest.approx(40, abs=30)}]
             assert (result.confidence[..., 0][disk] > 0).mean() >= 0.8
     assert ratios["auto"] >= 1.5 * ratios["homography"] and on_disk["auto"] >= 2.0, (ratios, on_disk)
 
@@ -239,7 +239,7 @@ def test_a_burst_no_single_warp_explains_is_corrected_through_its_field(kind, mo
     save_burst(burst, tmp_path, fmt="exr")
     cfg = load_config(overrides={"solver.workers": 1})
     result = estimate(load_burst([tmp_path], cfg), cfg)
-    assert result.report["motion"]["model"] == model
+    assert result.report.motion.model == model
     frame0 = burst.frames[0].astype(np.float64) - burst.sensor.black_level
     k = result.k[..., 0]
     assert metrics.mse(frame0, burst.ideal[0]) > 4 * metrics.mse(k * frame0, burst.ideal[0])
@@ -266,11 +266,11 @@ def test_colour_channels_and_a_later_reference_share_the_masks_and_the_solve():
                                                        "motion.model": "affine"}))  # the object is masked
 
     mono = run(grey[..., None].copy(), ("Y",))
-    assert min(mono.report["motion"]["moving_percent"]) > 5  # the object's masks, to share
+    assert min(mono.report.motion.moving_percent) > 5  # the object's masks, to share
     rgb = run(grey[..., None] * np.array([0.5, 1.0, 2.0], np.float32), ("R", "G", "B"))
     for c in range(3):
         np.testing.assert_allclose(rgb.k[..., c], mono.k[..., 0], atol=1e-5)
     later = run(grey[..., None].copy(), ("Y",), reference=2)
-    assert later.report["reference"] == "f2.exr"
+    assert later.report.reference == "f2.exr"
     est = later.confidence[..., 0] > 0
     assert metrics.residual_fpn_percent(later.k[..., 0], burst.gain, est) < 1.2

@@ -1,17 +1,18 @@
 """preview.png: what it shows of a map (subsampling, unestimated pixels) on mono, RGB and CFA maps."""
 
-import json
+import dataclasses
 
 import cv2
 import numpy as np
 import pytest
 
 from gainfpn_cli.preview import PREVIEW_PX, UNESTIMATED, shown, write_preview
+from gainfpn_cli.report import Holdout, Motion, Prnu, Report
 
-REPORT = {"inputs": ["a", "b", "c", "d"], "motion": {"model": "affine"},
-          "planes": {"Y": {"method": "accurate", "fpn_model": "pixel"}},
-          "prnu_percent": {"total": 5.0, "pixel": 4.9, "column": 1.0, "row": 0.1},
-          "predicted_residual_percent": 0.5, "holdout": {"residual_ratio": 0.2, "passed": True}}
+REPORT = Report(status="accepted", motion=Motion("affine"), inputs=("a", "b", "c", "d"),
+                planes={"Y": {"method": "accurate", "fpn_model": "pixel"}},
+                prnu_percent=Prnu.of({"pixel": 4.9, "column": 1.0, "row": 0.1}), predicted_residual_percent=0.5,
+                holdout=Holdout("d", 0.2, True))
 
 
 def test_a_large_map_is_shown_on_every_nth_pixel_not_averaged():
@@ -39,7 +40,7 @@ def test_maps_of_every_kind_are_drawn_with_unestimated_pixels_in_the_legend_colo
 
 def test_a_rejected_estimate_draws_a_flat_map(tmp_path):
     k = np.ones((64, 80, 1), np.float32)
-    report = {**REPORT, "predicted_residual_percent": None, "holdout": {"residual_ratio": 1.3, "passed": False},
-              "prnu_percent": {"total": None, "pixel": None, "column": None, "row": None}}
-    write_preview(tmp_path / "p.png", k, np.zeros_like(k), report=json.loads(json.dumps(report)), name="b/")
+    report = dataclasses.replace(REPORT, predicted_residual_percent=None, holdout=Holdout("d", 1.3, False),
+                                 prnu_percent=Prnu(), status="rejected")
+    write_preview(tmp_path / "p.png", k, np.zeros_like(k), report=report, name="b/")
     assert cv2.imread(str(tmp_path / "p.png")) is not None

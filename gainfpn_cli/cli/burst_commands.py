@@ -57,9 +57,8 @@ def estimate(inputs, out_dir, config_path, preset, method, workers, block_size, 
     """
     from ..config import load_config
     from ..files import find_frames
-    from ..outputs import estimate_plan, write_estimate
-    from ..pipeline import estimate as run_estimate
-    from ..pipeline import load_burst
+    from ..api import estimate as run_estimate
+    from ..outputs import estimate_plan
     from ..summary import estimate_line, estimate_record
 
     cfg = load_config(config_path, preset=preset, overrides={
@@ -75,19 +74,18 @@ def estimate(inputs, out_dir, config_path, preset, method, workers, block_size, 
 
             executor = DaskExecutor(stack.enter_context(connect(scheduler)))
         try:
-            burst = load_burst(inputs, cfg, progress=progress)
-            result = run_estimate(burst, cfg, progress=progress, executor=executor)
-            plan = write_estimate(result, burst, cfg, out_dir, overwrite=overwrite, progress=progress)
+            result = run_estimate(inputs, config=cfg, progress=progress, executor=executor)
+            written = result.write(out_dir, overwrite=overwrite, progress=progress)
         finally:
             close(progress)
-    for warning in result.warnings:
+    for warning in written.report.warnings:
         click.echo(f"Warning: {warning}", err=True)
-    untouched(plan, as_json)
+    untouched(written.plan, as_json)
     if as_json:
-        print_json(estimate_record(result.report, out_dir, untouched=plan.untouched))
+        print_json(estimate_record(written.report, out_dir, untouched=written.plan.untouched))
     else:
-        say(quiet, estimate_line(result.report, out_dir))
-    if strict and result.report["status"] == "rejected":
+        say(quiet, estimate_line(written.report, out_dir))
+    if strict and written.report.status == "rejected":
         raise SystemExit(EXIT_REJECTED)
 
 

@@ -11,6 +11,7 @@ from ..errors import EstimationError, InputError
 from ..files import ATTR_CFA, find_frames, read_exr_planes, read_frame, stamp
 from ..metrics import mse, residual_fpn_percent
 from ..outputs import read_gain_map
+from ..report import Report
 from .truth import load_truth, residual_bound_percent
 
 
@@ -32,16 +33,16 @@ def evaluate(out_dir: Path, sim_dir: Path) -> dict:
     if not est.any():
         raise EstimationError(f"{out_dir}: the gain map has no estimated pixel")
     result = scores(k[..., 0], est, first.data[..., 0], truth)
-    n_fit = len(report["inputs"]) - (1 if report.get("holdout") else 0)  # one frame is held out to check k
+    n_fit = len(report.inputs) - (1 if report.holdout else 0)  # one frame is held out to check k
     bound = residual_bound_percent(truth, est, n_fit)
     return {**result, "residual_bound_percent": bound, "bound_frames": n_fit}
 
 
-def _read_report(out_dir: Path) -> dict:
+def _read_report(out_dir: Path) -> Report:
     path = out_dir / "report.json"
     try:
-        report = json.loads(path.read_text(encoding="utf-8"))
-        report["inputs"][0]["sha256"]
+        report = Report.from_json(json.loads(path.read_text(encoding="utf-8")))
+        report.inputs[0].sha256
     except OSError as exc:
         raise InputError(f"{path}: cannot read ({exc.strerror or exc}); is {out_dir} a folder written by "
                          "`gainfpn estimate`?") from None
@@ -60,11 +61,11 @@ def _check_truth(report, attrs, k, truth, first, sim_paths, out_dir: Path, sim_d
     if sim_cfa != est_cfa:
         raise InputError(f"{sim_dir}: CFA layout {sim_cfa} differs from the estimate's ({est_cfa}): not this "
                          "estimate's simulation")
-    sim_white, est_white = first.info.layout()[4], report.get("white_level_dn")
+    sim_white, est_white = first.info.layout()[4], report.white_level_dn
     if sim_white != est_white:
         raise InputError(f"{sim_dir}: white level {_dn(sim_white)} differs from the estimate's frames' "
                          f"({_dn(est_white)}): another bit depth, not this estimate's simulation")
-    recorded = {Path(i["path"]).name: i["sha256"] for i in report["inputs"]}
+    recorded = {Path(i.path).name: i.sha256 for i in report.inputs}
     for path in sim_paths:
         if path.name in recorded and stamp(path).sha256 != recorded.pop(path.name):
             raise InputError(f"{path}: differs from the frame {path.name} the estimate in {out_dir} was made from "

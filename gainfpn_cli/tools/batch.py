@@ -26,6 +26,7 @@ from typing import Callable
 
 from ..errors import ConfigError, GainFPNError, InputError
 from ..outdir import remove_staging
+from ..report import Report
 
 #: Columns of summary.csv (summary.json holds the same rows) and the decimals each number is rounded to.
 COLUMNS = {"name": None, "status": None, "earlier": None, "frames": None, "motion_model": None, "fpn_models": None,
@@ -123,16 +124,15 @@ def _with_workers(cfg, workers: int):
     return dataclasses.replace(cfg, solver=dataclasses.replace(cfg.solver, workers=workers))
 
 
-def stored_report(folder: Path, job: Job, cfg) -> dict | None:
+def stored_report(folder: Path, job: Job, cfg) -> Report | None:
     """The report of ``folder``'s result if it was made from the job's inputs as they are now (paths,
     sizes, modification times) with the effective config ``cfg``; else None (run it again)."""
     from ..config import config_dict
-    from ..files import FileStamp, find_frames, stamp
+    from ..files import find_frames, stamp
 
     try:
-        report = json.loads((folder / "report.json").read_text(encoding="utf-8"))
-        recorded = [FileStamp(**i) for i in report["inputs"]]
-        dark = None if report["dark"] is None else FileStamp(**report["dark"])
+        report = Report.from_json(json.loads((folder / "report.json").read_text(encoding="utf-8")))
+        recorded, dark = report.inputs, report.dark
         now = [stamp(p, digest=False) for p in find_frames(job.inputs)]
     except (OSError, ValueError, KeyError, TypeError, GainFPNError):
         return None
@@ -142,7 +142,7 @@ def stored_report(folder: Path, job: Job, cfg) -> dict | None:
         return None
     if dark is not None and not stamp(cfg.input.dark, digest=False).same_file(dark):
         return None
-    return report if report.get("config") == config_dict(cfg) else None
+    return report if report.config == config_dict(cfg) else None
 
 
 def run_burst(job: Job, out: str | os.PathLike, *, defaults: Defaults = Defaults(), overwrite: bool = False,
@@ -162,39 +162,37 @@ def run_burst(job: Job, out: str | os.PathLike, *, defaults: Defaults = Defaults
         cfg = job_config(job, defaults, solver_workers=solver_workers)
         report = None if overwrite else stored_report(folder, job, cfg)
         if report is not None:
-            return {**_row(job.name, report, report["timings"]["total_s"]), "earlier": True}
+            return {**_row(job.name, report, report.timings["total_s"]), "earlier": True}
         burst = load_burst(job.inputs, cfg)  # as `estimate` reads its INPUTS
         result = estimate(burst, cfg)
-        write_estimate(result, burst, cfg, folder, overwrite=True)  # the batch's own folder
+        written = write_estimate(result, burst, cfg, folder, overwrite=True)  # the batch's own folder
     except GainFPNError as exc:
         return {**_failed(job.name, str(exc)), "time_s": round(time.perf_counter() - t0, 2)}
-    return _row(job.name, result.report, time.perf_counter() - t0)
+    return _row(job.name, written.report, time.perf_counter() - t0)
 
 
 def _failed(name: str, message: str) -> dict:
     return {**dict.fromkeys(COLUMNS), "name": name, "status": "failed", "earlier": False, "message": message}
 
 
-def _row(name: str, report: dict, seconds: float) -> dict:
-    from ..summary import exposure_spread_percent, fpn_models
-
-    prnu = report["prnu_percent"]
+def _row(name: str, report: Report, seconds: float) -> dict:
+    prnu = report.prnu_percent
     row = {
         "name": name,
-        "status": "rejected" if report["status"] == "rejected" else "done",
+        "status": "rejected" if report.status == "rejected" else "done",
         "earlier": False,
-        "frames": len(report["inputs"]),
-        "motion_model": report["motion"]["model"],
-        "fpn_models": fpn_models(report),
-        "prnu_percent": prnu["total"],
-        "prnu_pixel_percent": prnu["pixel"],
-        "prnu_column_percent": prnu["column"],
-        "prnu_row_percent": prnu["row"],
-        "predicted_residual_percent": report["predicted_residual_percent"],
-        "holdout_ratio": (report.get("holdout") or {}).get("residual_ratio"),
-        "exposure_spread_percent": exposure_spread_percent(report),  # divided out (0: one exposure)
+        "frames": len(report.inputs),
+        "motion_model": report.motion.model,
+        "fpn_models": report.fpn_models,
+        "prnu_percent": prnu.total,
+        "prnu_pixel_percent": prnu.pixel,
+        "prnu_column_percent": prnu.column,
+        "prnu_row_percent": prnu.row,
+        "predicted_residual_percent": report.predicted_residual_percent,
+        "holdout_ratio": None if report.holdout is None else report.holdout.residual_ratio,
+        "exposure_spread_percent": report.exposure_spread_percent,  # divided out (0: one exposure)
         "time_s": seconds,
-        "message": "; ".join(report["warnings"]),
+        "message": "; ".join(report.warnings),
     }
     return {key: value if COLUMNS[key] is None or value is None else round(float(value), COLUMNS[key])
             for key, value in row.items()}

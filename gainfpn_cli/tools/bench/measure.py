@@ -171,19 +171,18 @@ def _pipeline(point: Point, folder: Path, out: Path) -> dict:
     burst = load_burst([folder], cfg)
     read_s = time.perf_counter() - t0
     result = estimate(burst, cfg)
-    write_estimate(result, burst, cfg, out, overwrite=True)
+    report = write_estimate(result, burst, cfg, out, overwrite=True).report
     total = time.perf_counter() - t0
-    holdout = result.report["holdout"] or {}
-    if holdout.get("passed") is False:  # the tool wrote k = 1: score what a user gets, no correction
+    passed = None if report.holdout is None else report.holdout.passed
+    if passed is False:  # the tool wrote k = 1: score what a user gets, no correction
         from ...sim.truth import load_truth
 
         scores = _scores(np.ones(result.k.shape[:2], np.float32), folder, load_truth(folder))
     else:
         scores = evaluate(out, folder)
     shutil.rmtree(out, ignore_errors=True)
-    timings = {"read_s": read_s, **result.report["timings"], "total_s": total}
-    return {**scores, "timings": timings, "motion_model": result.report["motion"]["model"],
-            "holdout_passed": holdout.get("passed")}
+    timings = {"read_s": read_s, **report.timings, "total_s": total}
+    return {**scores, "timings": timings, "motion_model": report.motion.model, "holdout_passed": passed}
 
 
 def _scores(k: np.ndarray, folder: Path, truth) -> dict:
