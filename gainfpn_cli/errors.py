@@ -19,7 +19,3 @@ class EstimationError(GainFPNError):
 
 class TrackingError(EstimationError):
     """A frame's motion could not be fitted: too few points tracked into it."""
-
-
-class GainFPNWarning(UserWarning):
-    """A result was produced but is weaker than asked for."""

@@ -55,9 +55,9 @@ def estimate(inputs, out_dir, config_path, preset, method, workers, block_size, 
     the estimate and k = 1 is written, with a warning; 3 then with --strict),
     1 on a user error.
     """
+    from ..api import estimate as run_estimate
     from ..config import load_config
     from ..files import find_frames
-    from ..api import estimate as run_estimate
     from ..outputs import estimate_plan
     from ..summary import estimate_line, estimate_record
 

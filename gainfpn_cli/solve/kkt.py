@@ -19,7 +19,6 @@ estimated from the factor (LAPACK ``dpocon``). Pure numpy/scipy.
 
 from __future__ import annotations
 
-import logging
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -28,8 +27,6 @@ import scipy.sparse as sp
 from scipy.linalg import lapack
 
 from ..errors import EstimationError
-
-log = logging.getLogger(__name__)
 
 #: Systems with more unknowns than this use the sparse KKT path.
 DENSE_MAX = 3000
@@ -110,13 +107,6 @@ def solve_block(i0, it, T: Sequence, *, lam: float = 0.0) -> np.ndarray:
     if status == UNESTIMATED:
         raise EstimationError(f"block system is singular (condition estimate {cond:.3g}): the data do not determine k")
     return k
-
-
-def _householder_basis(n: int) -> tuple[np.ndarray, float]:
-    """``u, beta`` with ``I - beta u u^T`` sending e_1 to -1/sqrt(n): its columns 2..n span 1-perp."""
-    u = np.full(n, 1.0 / np.sqrt(n))
-    u[0] += 1.0
-    return u, 2.0 / (u @ u)
 
 
 def _solve_gauged(Q, *, lam: float, max_condition: float, check: slice = slice(None),
