@@ -22,6 +22,8 @@ from typing import Any, Callable, Mapping
 import yaml
 
 from .errors import ConfigError
+from .motion import ALL_MODELS
+from .solve import FPN_MODELS
 
 # --------------------------------------------------------------------------
 # value checks: each takes the raw YAML value and returns the converted value
@@ -135,7 +137,7 @@ class InputConfig:
 class MotionConfig:
     model: str = _key(
         "auto",
-        choice("auto", "translation", "affine", "homography", "rolling", "mesh", "layers"),
+        choice("auto", *ALL_MODELS),
         "motion model: a global warp, a homography plus a smooth field (rolling: per row, for a rolling "
         "shutter; mesh: over the frame), or layers (a homography per scene layer: a near object's parallax, an "
         "object moving on its own); auto picks the one with the lowest GRIC (robust information criterion)",
@@ -183,7 +185,7 @@ class SolverConfig:
         "between pixels (robust rounds); auto = on the planes of a RAW mosaic, which are aliased",
     )
     fpn_model: str = _key(
-        "auto", choice("auto", "none", "row", "column", "column+row", "pixel"),
+        "auto", choice("auto", *FPN_MODELS),
         "accurate method: gain FPN model; auto picks the one with the lowest AIC",
     )
     workers: int = _key(2, positive_int, "processes that solve blocks in parallel")

@@ -11,6 +11,10 @@ from __future__ import annotations
 
 import numpy as np
 
+#: Standard deviation of a normal distribution per unit of its median absolute deviation
+#: (1 / Phi^-1(3/4)): ``MAD_TO_SIGMA * MAD`` is the robust spread used throughout.
+MAD_TO_SIGMA = 1.4826
+
 
 def robust_spread(values: np.ndarray) -> float:
     """1.4826 * MAD of ``values / median(values)``: a robust relative sigma."""
@@ -19,7 +23,7 @@ def robust_spread(values: np.ndarray) -> float:
     if values.size == 0:
         return float("nan")
     rel = values / np.median(values)
-    return float(1.4826 * np.median(np.abs(rel - np.median(rel))))
+    return float(MAD_TO_SIGMA * np.median(np.abs(rel - np.median(rel))))
 
 
 def residual_fpn_percent(k: np.ndarray, gain: np.ndarray, mask: np.ndarray | None = None) -> float:
@@ -74,7 +78,7 @@ def mixture_spread(sigmas: np.ndarray) -> float:
     if s.size == 0:
         return float("nan")
     below = lambda m: float(np.mean(erf(m / (np.sqrt(2.0) * s)))) - 0.5  # noqa: E731
-    return 1.4826 * brentq(below, 0.0, 10.0 * float(s.max()))
+    return MAD_TO_SIGMA * brentq(below, 0.0, 10.0 * float(s.max()))
 
 
 def point_noise_variance(distances: np.ndarray) -> float:

@@ -78,3 +78,18 @@ def test_importing_the_package_changes_nothing_and_loads_nothing_heavy():
     env = {k: v for k, v in os.environ.items() if not k.endswith("_NUM_THREADS")}
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True).stdout
     assert out.split() == ["True", "False", "False", "False"]  # --help stays fast
+
+
+def test_the_model_names_are_those_of_the_models():
+    from gainfpn_cli import motion, solve
+    from gainfpn_cli.config import Config
+    from gainfpn_cli.motion.fields import FIELD_CELLS
+    from gainfpn_cli.motion.fit import MODEL_PARAMS
+    from gainfpn_cli.solve.fpnmodel import select_model
+
+    assert motion.MODELS == (*MODEL_PARAMS, *FIELD_CELLS) and motion.ALL_MODELS == (*motion.MODELS, "layers")
+    import numpy as np
+
+    k, conf = np.ones((8, 8), np.float32), np.full((8, 8), 0.5, np.float32)
+    assert set(select_model(k, conf).scores) == set(solve.FPN_MODELS)
+    assert Config().motion.model == "auto" and Config().solver.fpn_model == "auto"

@@ -14,6 +14,8 @@ import numpy as np
 from ..errors import EstimationError, TrackingError
 from ..geometry.warps import STILL_PX, FieldWarp, GlobalWarp, LayeredWarp, apply_homography, trajectory_rms
 from ..metrics import point_noise_variance
+from . import ALL_MODELS as _ALL_NAMES
+from . import MODELS as _NAMES
 from .fields import FIELD_CELLS, fit_field
 from .fields import residuals as field_residuals
 from .fit import INLIER_PX, MIN_POINTS, MODEL_PARAMS, fit_models, gric, transfer_residuals
@@ -21,10 +23,9 @@ from .layers import find_layers, label_pixels
 from .masks import mask_factor, reduced_smooth
 from .track import TRACK_SIGMA, find_corners, track_corners, tracking_image
 
-#: Every model fitted frame by frame, simplest first: the global ones, then the fields of :mod:`fieldfit`.
-MODELS = [*MODEL_PARAMS, *FIELD_CELLS]
-#: Every model: those, and scene layers (:mod:`layers`), fitted to the whole burst at once.
-ALL_MODELS = [*MODELS, "layers"]
+#: The models' names (:mod:`motion`): those fitted frame by frame (:data:`fit.MODEL_PARAMS`, then
+#: :data:`fields.FIELD_CELLS`), and all of them with the layers.
+MODELS, ALL_MODELS = list(_NAMES), list(_ALL_NAMES)
 
 
 @dataclass(frozen=True)

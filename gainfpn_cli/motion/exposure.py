@@ -27,6 +27,7 @@ import numpy as np
 
 from ..geometry.resample import sample, valid_samples
 from ..geometry.warps import as_warp
+from ..metrics import MAD_TO_SIGMA
 
 #: About this many pixels are compared per frame and way (every n-th on each
 #: axis of a larger frame): the standard error is ~0.05 % with the 19 200 of
@@ -141,7 +142,7 @@ def _log_ratio(image, image_ok, other, other_ok, M, step: int) -> tuple[float, f
         return None
     d = np.log(other) - np.log(own)
     centre = np.median(d)
-    keep = np.abs(d - centre) <= TRIM * 1.4826 * np.median(np.abs(d - centre))
+    keep = np.abs(d - centre) <= TRIM * MAD_TO_SIGMA * np.median(np.abs(d - centre))
     other, own = other[keep], own[keep]
     ratio = other.sum() / own.sum()
     return float(np.log(ratio)), float(np.sqrt(np.sum((other - ratio * own) ** 2)) / (ratio * own.sum()))

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..geometry.warps import as_warp
+from ..metrics import MAD_TO_SIGMA
 from .track import TRACK_SIGMA, to_uint8
 
 #: A pixel does not follow the global warp when its dense (DIS) flow departs
@@ -98,7 +99,7 @@ def moving_masks(frames: np.ndarray, motion, *, factor: int | None = None, expos
         where = positions(M, (size[1], size[0]))  # where frame b sees each pixel, by the motion
         diff = np.abs(smooth[a] - sample(smooth[b], M, (size[1], size[0]), kernel="bilinear"))
         diff /= np.maximum(smooth[a], MASK_FLOOR * float(np.median(smooth[a][::2, ::2])))  # relative, as the FPN
-        sigma = 1.4826 * float(np.median(diff[::2, ::2]))  # a robust spread: a quarter of the pixels suffice
+        sigma = MAD_TO_SIGMA * float(np.median(diff[::2, ::2]))  # a robust spread: a quarter of the pixels suffice
         # a pixel frame b does not see (outside it, or hidden in it under a layered warp:
         # trajectory.NOWHERE) is compared with nothing, so it departs from nothing
         x, y = where[..., 0], where[..., 1]

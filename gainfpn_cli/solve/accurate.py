@@ -38,8 +38,9 @@ import numpy as np
 from ..errors import EstimationError
 from ..geometry.resample import KERNELS, bounded, low_pass, positions, sample, valid_samples
 from ..geometry.warps import STILL_PX, FieldWarp, GlobalWarp, as_warp, trajectory_rms
+from ..metrics import MAD_TO_SIGMA
 from ..parallel import map_ordered
-from .result import CONFIDENCE_SCALE, GainResult
+from .result import CONFIDENCE_SCALE, GainResult, out_of_range, regauge
 
 
 @dataclass(frozen=True)
@@ -197,14 +198,13 @@ def solve_accurate(
     k = np.divide(k_sum, weight_sum, out=np.ones((h, w), np.float32), where=estimated)
     confidence = np.divide(conf_sum, weight_sum, out=np.zeros((h, w), np.float32), where=estimated)
     del k_sum, conf_sum, weight_sum
-    low, high = options.gain_range
-    absurd = estimated & ((k < low) | (k > high))
+    absurd = out_of_range(k, estimated, options.gain_range)
     estimated &= ~absurd
     confidence[absurd] = 0.0
     if not estimated.any():
         raise EstimationError("no pixel could be compared between frames (all clipped, dark or out of view)")
     k[~estimated] = 1.0
-    k /= k[estimated].mean(dtype=np.float64)
+    regauge(k, estimated)
     k[~estimated] = 1.0
     stats = {
         "tiles": len(tiles),
@@ -294,7 +294,7 @@ def _solve_tile(tile: _Tile) -> tuple[np.ndarray, np.ndarray, int]:
         k = 1.0 + x
         residuals = _residuals(k, frames, pair_maps, opt.kernel)
         if round_ < opt.robust_rounds:
-            spread = 1.4826 * np.median(np.abs(np.concatenate([r[v & est] for r, v in zip(residuals, valid)])))
+            spread = MAD_TO_SIGMA * np.median(np.abs(np.concatenate([r[v & est] for r, v in zip(residuals, valid)])))
             scale = opt.robust_scale * max(spread, 1e-12)
             weights = [v / (1.0 + (r / scale) ** 2) for r, v in zip(residuals, valid)]
             if opt.phase_weights:

@@ -22,7 +22,7 @@ from ..errors import EstimationError
 from ..geometry.warps import STILL_PX
 from ..parallel import map_ordered
 from .kkt import DENSE_MAX, OK, REGULARISED, UNESTIMATED, SolveOptions, _solve_gauged
-from .result import GainResult
+from .result import GainResult, regauge
 
 
 @dataclass(frozen=True)
@@ -93,7 +93,7 @@ def solve_paper(
     rows = sum(r[2] for r in results)
     estimated = status != UNESTIMATED
     if estimated.any():
-        k = k / k[estimated].mean()  # gauge: mean 1 over estimated pixels
+        regauge(k, estimated)
     k[~estimated] = 1.0
     confidence = np.select([status == OK, status == REGULARISED], [1.0, 0.5], 0.0)
     block_status = status[::block_size, ::block_size]

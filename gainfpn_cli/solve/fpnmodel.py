@@ -41,9 +41,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..metrics import robust_spread
-from .result import sigma_from_confidence
+from . import FPN_MODELS
+from .result import regauge, sigma_from_confidence
 
-MODELS = ("none", "row", "column", "column+row", "pixel")
+MODELS = FPN_MODELS
 
 
 @dataclass(frozen=True)
@@ -178,7 +179,7 @@ def select_model(k: np.ndarray, confidence: np.ndarray, *, force: str | None = N
         model_k = full(fits[chosen][0])
     del deviation
     if est.any():
-        model_k /= model_k[est].mean(dtype=np.float64)
+        regauge(model_k, est)
     if chosen == "pixel":
         model_k[~est] = 1.0
     split = {

@@ -47,6 +47,18 @@ def sigma_from_confidence(confidence: np.ndarray) -> np.ndarray:
     return dtype(CONFIDENCE_SCALE) * np.sqrt(ratio - dtype(1))
 
 
+def regauge(k: np.ndarray, est: np.ndarray, *, everywhere: bool = True) -> None:
+    """The gauge, in place: divide ``k`` (over every pixel, or only ``est`` without ``everywhere``)
+    by its mean over the estimated pixels ``est``, so that it is 1 there (docs/method.md section 2)."""
+    k[np.ones(k.shape, bool) if everywhere else est] /= k[est].mean(dtype=np.float64)
+
+
+def out_of_range(k: np.ndarray, est: np.ndarray, gain_range: tuple[float, float]) -> np.ndarray:
+    """The estimated pixels whose k is not physical: outside ``gain_range``."""
+    low, high = gain_range
+    return est & ((k < low) | (k > high))
+
+
 def physical(result: GainResult, gain_range: tuple[float, float], structured: bool = False) -> GainResult:
     """``result`` with every estimated k in ``gain_range`` and the gauge (mean 1 over the
     estimated pixels) kept: a renormalisation can push a k just past a limit, so pixels
@@ -54,14 +66,13 @@ def physical(result: GainResult, gain_range: tuple[float, float], structured: bo
     map also gives unestimated pixels their column / row gain, renormalised with the rest."""
     k = np.array(result.k, np.float32)
     confidence = np.array(result.confidence, np.float32)
-    low, high = gain_range
     while True:  # each round leaves at least one more pixel unestimated
         est = confidence > 0
-        outside = est & ((k < low) | (k > high))
+        outside = out_of_range(k, est, gain_range)
         if not outside.any():
             break
         est &= ~outside
         if est.any():
-            k[np.ones(k.shape, bool) if structured else est] /= k[est].mean(dtype=np.float64)
+            regauge(k, est, everywhere=structured)
         k[outside], confidence[outside] = 1.0, 0.0
     return GainResult(k.astype(np.float32), confidence.astype(np.float32), result.stats)
