@@ -142,13 +142,8 @@ class MotionConfig:
         "shutter; mesh: over the frame), or layers (a homography per scene layer: a near object's parallax, an "
         "object moving on its own); auto picks the one with the lowest GRIC (robust information criterion)",
     )
-    # Measured (24 bursts per scene, 200x260x6, default solver): on the smooth
-    # procedural scene one round brings the worst-frame motion error within
-    # issue 4's 0.05 px (worst 0.083 -> 0.048 px, median 0.034 -> 0.023);
-    # on dead leaves it stays within it (median 0.013 -> 0.014, worst 0.025).
-    # It needs a good k: after balanced's cubic solve the procedural worst is
-    # 0.063 px. The MSE hardly moves: 640x480 (bench) 19.6x -> 19.7x for
-    # twice the solve time. Hence 0 by default, 1 in the accurate preset.
+    # 0 by default, 1 in the accurate preset: a round halves the worst small-frame motion error of a
+    # smooth scene for twice the solve time (docs/method.md, Measured choices).
     refine_rounds: int = _key(
         0, non_negative_int, "estimate k, correct the frames, re-estimate motion and solve again this many times"
     )

@@ -39,13 +39,8 @@ MIN_FRAMES = 3
 #: Fewest pixels per side of the images motion is tracked on (measured: 48 px
 #: frames lose frames to too few inliers; 64 px work).
 MIN_TRACK_SIDE = 64
-#: Fraction of the reference's pixels at or below black above which the
-#: estimate warns that the burst is read-noise limited. Measured (64x80x6
-#: bursts, 5 % FPN, frames dark all over): 2-6 % of pixels at 0 (median
-#: 2.4-3.7 DN) gave residual FPN 5.4-7.7 %, worse than none, with the
-#: hold-out check passing; 0.5 % (7 DN) gave 3.6-4.1 %. A scene with deep
-#: shadows also crosses it while its bright parts are fine, so it is a
-#: warning, not an error.
+#: Fraction of the reference's pixels at or below black above which the estimate warns that the
+#: burst is read-noise limited (a warning: a scene with deep shadows crosses it too; docs/limits.md).
 MAX_DARK_FRACTION = 0.01
 
 

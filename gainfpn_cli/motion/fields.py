@@ -43,14 +43,8 @@ KEEP_FLOOR_PX = 0.3
 #: Penalty weights tried by generalised cross-validation, relative to
 #: ``trace(B^T B) / trace(P)``.
 LAMBDAS = 10.0 ** np.arange(-6.0, 3.0)
-#: Ridge on the coefficients, relative to the same scale: it settles what the
-#: homography explains as well (exactly: constant and linear fields; nearly:
-#: the quadratic parts of its projective terms). Measured: at 1e-7 the two
-#: drift apart by tens of pixels on tracked points; a ridge on the affine
-#: part alone lets them drift along the projective terms (0.3-90 px). Its
-#: cost: coefficients that few points constrain (a corner) are pulled
-#: toward 0 (a mesh fit of 600 exact-to-0.02 px points: 0.015 px inside
-#: the frame, 0.06 px within 16 px of its edges, 0.23 px at a bare corner).
+#: Ridge on the coefficients, relative to the same scale: it settles what the homography explains
+#: as well (docs/method.md, Measured choices: 1e-7 let the two drift apart by tens of pixels).
 RIDGE = 1e-4
 #: Gauss-Newton steps per fit (each reweighting round re-linearises anyway;
 #: 5 gave the same trajectories, measured on 27 bursts).

@@ -15,14 +15,9 @@ MIN_POINTS = {"translation": 3, "affine": 6, "homography": 8}
 
 #: Inlier threshold (px) of the robust homography fit.
 INLIER_PX = 0.3
-#: Robust fit: USAC_ACCURATE (GC-RANSAC, scored by inlier count), then up
-#: to LOCAL_ROUNDS least-squares refits, each keeping the points within
-#: LOCAL_SIGMAS x the residual noise (capped at INLIER_PX). Measured on 36
-#: held-out 200x260 bursts (seeds 5-10, shake / 4 px shake / 25 px drift,
-#: with and without a 10 % moving object), worst frame per burst:
-#: MAGSAC alone median 0.053 / 0.088 px (object), one burst off by 28 px
-#: (MAGSAC preferred the crisp object's 48 points to 96 background ones);
-#: this scheme median 0.042 / 0.051 px, worst 0.085 / 0.125 px.
+#: Robust fit: USAC_ACCURATE (GC-RANSAC, scored by inlier count), then up to LOCAL_ROUNDS
+#: least-squares refits, each keeping the points within LOCAL_SIGMAS x the residual noise (capped at
+#: INLIER_PX); against MAGSAC alone: docs/method.md, Measured choices.
 LOCAL_ROUNDS = 10
 LOCAL_SIGMAS = 2.5
 

@@ -9,19 +9,10 @@ from ..geometry.warps import as_warp
 from ..metrics import MAD_TO_SIGMA
 from .track import TRACK_SIGMA, to_uint8
 
-#: A pixel does not follow the global warp when its dense (DIS) flow departs
-#: from the warp by more than MASK_FLOW_PX *and* the frames disagree there by
-#: more than MASK_SIGMAS robust standard deviations (after TRACK_SIGMA
-#: smoothing): flow alone is unreliable on flat areas, where a wrong vector
-#: costs nothing anyway. The disagreement is relative to the brightness (at
-#: least MASK_FLOOR x the median), as the gain pattern is: measured in
-#: absolute DN, bright flat areas were flagged for their FPN. The mask is
-#: then grown by MASK_GROW_PX. Measured on 200x260x6 bursts, seeds 3-8, both
-#: scenes, shake and 25 px drift, true motion (absolute at 4 sigmas ->
-#: relative at 3.5): textured object pixels found in the worst frame of the
-#: drift bursts 94-97 % either way (in the shake bursts some seed's worst
-#: frame finds none either way); without an object, flagged 0.2-1.6 % ->
-#: 0.1-1.1 % of the burst and at most 7.2 % -> 2.7 % of the reference.
+#: A pixel does not follow the global warp when its dense (DIS) flow departs from the warp by more
+#: than MASK_FLOW_PX *and* the frames disagree there by more than MASK_SIGMAS robust standard
+#: deviations, relative to the brightness (at least MASK_FLOOR x the median); the mask is grown by
+#: MASK_GROW_PX. Why both tests, and what they find: docs/method.md, Measured choices.
 MASK_FLOW_PX = 1.0
 MASK_SIGMAS = 3.5
 MASK_FLOOR = 0.25

@@ -11,12 +11,8 @@ import numpy as np
 from ..errors import InputError
 from ..files.read import check_finite, read_oiio
 
-#: Built-in scenes, by name. ``dead-leaves`` uses a smallest leaf of 3 sensor
-#: pixels, chosen so that the paper's published form gives about its
-#: published ratio (2.8x; measured medians 2.2x on 120x160 and 2.6x on
-#: 240x320 bursts). The other figures of docs/method.md section 5, measured there
-#: on a real photograph (global Lanczos solve 15x), then follow without
-#: further tuning (accurate mode, 120x160: median 16x).
+#: Built-in scenes, by name. ``dead-leaves``'s smallest leaf (3 sensor pixels) makes the paper's
+#: published form give about its published ratio (docs/method.md, Measured choices);
 #: ``procedural`` is smoother (multi-scale noise and shapes of >= 1.5 px).
 SCENES = ("procedural", "dead-leaves")
 

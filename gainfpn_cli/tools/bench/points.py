@@ -9,13 +9,13 @@ from dataclasses import dataclass, field
 SENSOR = "paper"
 
 
-#: The hand-held motions of issue 4's accuracy target: the default shake, a 4 px shake with 0.5 degree
+#: The hand-held motions the motion accuracy is held to (STILL_PX): the default shake, a 4 px shake with 0.5 degree
 #: rotations, and a 25 px drift.
 MOTIONS = {"shake": {}, "4 px shake": {"translation_px": 2.5, "rotation_deg": 0.5},
            "25 px drift": {"translation_px": 1.0, "rotation_deg": 0.2, "drift_px": 25.0}}
 #: Bursts each motion-accuracy point of the plan scores.
 MOTION_SEEDS = 8
-#: Issue 4's target: RMS trajectory error (px) over the frame's background, in every frame.
+#: The motion accuracy asked of every frame: RMS trajectory error (px) over the frame's background.
 MOTION_TARGET_PX = 0.05
 
 
@@ -115,7 +115,7 @@ def _all_points(quick: bool) -> list[Point]:
     near = dataclasses.replace(base, parallax=1.0)  # a nearer plane: the layers model against one warp
     points += [Point("motion_model", f"parallax 1.0, {model}", near, overrides={"motion.model": model})
                for model in ("auto", "homography")]
-    for motion in MOTIONS:  # issue 4's target, on the smoother scene (fewer corners, more pull from the FPN)
+    for motion in MOTIONS:  # on the smoother scene (fewer corners, more pull from the FPN)
         for mover in (0.0, 0.1):
             burst = dataclasses.replace(base, scene="procedural", n_frames=6, seed=3, motion=motion, moving_object=mover)
             points.append(Point("motion_accuracy", motion + (", 10 % object" if mover else ""), burst, kind="motion",
@@ -137,7 +137,7 @@ def _all_points(quick: bool) -> list[Point]:
     for n in (4, 16, 32):
         points.append(Point("scaling_frames", f"balanced, {n} frames, 2 MP",
                             BurstSpec(shape=(1200, 1600), n_frames=n, supersample=2), preset="balanced"))
-    # issue 5's memory target: 12 MP x 16 frames within 4 GiB
+    # the memory a 12 MP x 16 frame burst needs (4 GiB asked)
     points.append(Point("scaling_frames", "balanced, 16 frames, 12 MP",
                         BurstSpec(shape=(3000, 4000), n_frames=16, supersample=2), preset="balanced"))
     points.append(Point("scaling_frames", "balanced, 16 frames, 12 MP, 12-bit RGGB DNG",
