@@ -28,3 +28,23 @@ def paper_burst():
 @pytest.fixture()
 def rng():
     return np.random.default_rng(1234)
+
+
+@pytest.fixture(scope="module")
+def small_sim(tmp_path_factory):
+    """``gainfpn simulate`` of a small burst (helpers.SMALL); read-only: copy it to change it."""
+    from helpers import SMALL, run_cli
+
+    folder = tmp_path_factory.mktemp("small") / "burst"
+    run_cli("simulate", folder, *SMALL)
+    return folder
+
+
+@pytest.fixture(scope="module")
+def small_estimate(small_sim, tmp_path_factory):
+    """``gainfpn estimate`` of :func:`small_sim`; read-only: copy it to change it."""
+    from helpers import run_cli
+
+    folder = tmp_path_factory.mktemp("small") / "est"
+    run_cli("estimate", small_sim, "-o", folder, "-q", "--workers", "1")
+    return folder

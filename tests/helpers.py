@@ -61,3 +61,29 @@ def _write_raw_exr(path, pixels, names, fmt="float"):
     spec.channelnames = tuple(names)
     out = oiio.ImageOutput.create(str(path))
     assert out.open(str(path), spec) and out.write_image(pixels) and out.close()
+
+
+#: A small simulated burst for command-line tests: 96x72, 5 frames.
+SMALL = ["--size", "96x72", "--frames", "5", "-q"]
+
+
+def run_cli(*args, ok=True):
+    """``gainfpn ARGS`` in-process; with ``ok``, assert it succeeded."""
+    from click.testing import CliRunner
+
+    from gainfpn_cli.cli import main
+
+    result = CliRunner().invoke(main, [str(a) for a in args])
+    if ok:
+        assert result.exit_code == 0, result.output
+    return result
+
+
+def one_error(result, *words):
+    """A user error: exit 1, one line on the output, naming ``words`` and never Python's None."""
+    assert result.exit_code == 1, result.output
+    lines = result.output.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("Error: "), result.output
+    assert "None" not in lines[0]
+    for word in words:
+        assert str(word) in lines[0], lines[0]

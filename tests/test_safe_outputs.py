@@ -8,13 +8,10 @@ import shutil
 from pathlib import Path
 
 import pytest
-from click.testing import CliRunner
+from helpers import SMALL, one_error, run_cli
 
 from gainfpn_cli import outdir
-from gainfpn_cli.cli import main
 from gainfpn_cli.errors import InputError
-
-SMALL = ["--size", "96x72", "--frames", "5", "-q"]
 
 
 def _tree(folder: Path) -> dict:
@@ -23,84 +20,55 @@ def _tree(folder: Path) -> dict:
             for p in sorted(folder.rglob("*")) if p.is_file()}
 
 
-def _run(*args, ok=True):
-    result = CliRunner().invoke(main, [str(a) for a in args])
-    if ok:
-        assert result.exit_code == 0, result.output
-    return result
-
-
-@pytest.fixture(scope="module")
-def sim(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("safe") / "burst"
-    _run("simulate", folder, *SMALL)
-    return folder
-
-
-@pytest.fixture(scope="module")
-def estimated(sim, tmp_path_factory):
-    folder = tmp_path_factory.mktemp("safe") / "est"
-    _run("estimate", sim, "-o", folder, "-q", "--workers", "1")
-    return folder
-
-
-def _refused(result, *words):
-    assert result.exit_code == 1, result.output
-    lines = result.output.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("Error: "), result.output
-    for word in words:
-        assert str(word) in lines[0]
-
-
 def test_estimate_into_its_own_input_folder_deletes_nothing(tmp_path):
     # the report's case: simulate self && echo notes > self/notes.txt && estimate self -o self --overwrite
     self_ = tmp_path / "self"
-    _run("simulate", self_, *SMALL)
+    run_cli("simulate", self_, *SMALL)
     (self_ / "notes.txt").write_text("notes\n")
     before = _tree(self_)
-    _refused(_run("estimate", self_, "-o", self_, "--overwrite", ok=False), "holds the input",
+    one_error(run_cli("estimate", self_, "-o", self_, "--overwrite", ok=False), "holds the input",
              self_ / "frame_000.exr")
     assert _tree(self_) == before
 
 
 def test_estimate_into_the_parent_of_its_inputs_deletes_nothing(tmp_path):
     burst = tmp_path / "parent" / "burst"
-    _run("simulate", burst, *SMALL)
+    run_cli("simulate", burst, *SMALL)
     before = _tree(tmp_path / "parent")
-    _refused(_run("estimate", burst, "-o", tmp_path / "parent", "--overwrite", ok=False), "holds the input")
-    as_out = _run("estimate", burst, "-o", burst / "frame_000.exr", "--overwrite", ok=False)
+    one_error(run_cli("estimate", burst, "-o", tmp_path / "parent", "--overwrite", ok=False), "holds the input")
+    as_out = run_cli("estimate", burst, "-o", burst / "frame_000.exr", "--overwrite", ok=False)
     assert as_out.exit_code == 2 and "is a file" in as_out.output  # click refuses a file as OUT
     assert _tree(tmp_path / "parent") == before
 
 
-def test_a_dark_frame_inside_out_is_an_input_too(sim, tmp_path):
+def test_a_dark_frame_inside_out_is_an_input_too(small_sim, tmp_path):
     out = tmp_path / "out"
     out.mkdir()
-    shutil.copy(sim / "frame_000.exr", out / "dark.exr")
-    _refused(_run("estimate", sim, "-o", out, "--dark", out / "dark.exr", "--overwrite", ok=False),
+    shutil.copy(small_sim / "frame_000.exr", out / "dark.exr")
+    one_error(run_cli("estimate", small_sim, "-o", out, "--dark", out / "dark.exr", "--overwrite", ok=False),
              "holds the input", "dark.exr")
     assert (out / "dark.exr").is_file()
 
 
-def test_apply_never_replaces_the_gain_map_it_applies(sim, estimated, tmp_path):
+def test_apply_never_replaces_the_gain_map_it_applies(small_sim, small_estimate, tmp_path):
     out = tmp_path / "est"
-    shutil.copytree(estimated, out)
+    shutil.copytree(small_estimate, out)
     before = _tree(out)
-    _refused(_run("apply", sim, "--gain-map", out / "gain_map.exr", "-o", out, "--overwrite", ok=False),
+    one_error(run_cli("apply", small_sim, "--gain-map", out / "gain_map.exr", "-o", out, "--overwrite", ok=False),
              "holds the input", "gain_map.exr")
     assert _tree(out) == before
 
 
-def test_overwrite_replaces_only_what_gainfpn_wrote_and_says_what_it_left(sim, tmp_path):
+def test_overwrite_replaces_only_what_gainfpn_wrote_and_says_what_it_left(small_sim, tmp_path):
     out = tmp_path / "est"
-    _run("estimate", sim, "-o", out, "-q", "--workers", "1")
-    _run("evaluate", out, "--truth", sim, "-q")
+    run_cli("estimate", small_sim, "-o", out, "-q", "--workers", "1")
+    run_cli("evaluate", out, "--truth", small_sim, "-q")
     (out / "notes.txt").write_text("mine\n")
     (out / "mine").mkdir()
     (out / "mine" / "a.txt").write_text("also mine\n")
-    again = _run("estimate", sim, "-o", out, "-q", "--workers", "1", ok=False)
-    _refused(again, "already holds results of gainfpn", "--overwrite")
-    replaced = _run("estimate", sim, "-o", out, "--workers", "1", "--overwrite")
+    again = run_cli("estimate", small_sim, "-o", out, "-q", "--workers", "1", ok=False)
+    one_error(again, "already holds results of gainfpn", "--overwrite")
+    replaced = run_cli("estimate", small_sim, "-o", out, "--workers", "1", "--overwrite")
     assert "left untouched" in replaced.output and "notes.txt" in replaced.output and "mine" in replaced.output
     assert (out / "notes.txt").read_text() == "mine\n" and (out / "mine" / "a.txt").read_text() == "also mine\n"
     # the old estimate's evaluation went with it: it would describe a map that is gone
@@ -109,47 +77,47 @@ def test_overwrite_replaces_only_what_gainfpn_wrote_and_says_what_it_left(sim, t
 
 def test_simulate_overwrite_keeps_user_files_and_drops_its_own_stale_frames(tmp_path):
     out = tmp_path / "b"
-    _run("simulate", out, "--size", "32x32", "--frames", "4", "-q")
+    run_cli("simulate", out, "--size", "32x32", "--frames", "4", "-q")
     (out / "notes.txt").write_text("notes\n")
-    refused = _run("simulate", out, "--size", "32x32", "--frames", "2", ok=False)
-    _refused(refused, "already holds results of gainfpn", "--overwrite")
-    replaced = _run("simulate", out, "--size", "32x32", "--frames", "2", "--overwrite")
+    refused = run_cli("simulate", out, "--size", "32x32", "--frames", "2", ok=False)
+    one_error(refused, "already holds results of gainfpn", "--overwrite")
+    replaced = run_cli("simulate", out, "--size", "32x32", "--frames", "2", "--overwrite")
     assert "left untouched" in replaced.output and "notes.txt" in replaced.output
     assert sorted(p.name for p in out.iterdir() if not p.name.startswith(".")) == [
         "frame_000.exr", "frame_001.exr", "notes.txt", "truth"]  # frames 2 and 3 of the old burst are gone
 
 
-def test_a_folder_of_user_files_takes_outputs_beside_them(sim, tmp_path):
+def test_a_folder_of_user_files_takes_outputs_beside_them(small_sim, tmp_path):
     out = tmp_path / "desk"
     out.mkdir()
     (out / "todo.txt").write_text("x")
-    _run("simulate", out / "sub", *SMALL)  # a folder the user made, not an input
-    made = _run("estimate", sim, "-o", out, "--workers", "1")
+    run_cli("simulate", out / "sub", *SMALL)  # a folder the user made, not an input
+    made = run_cli("estimate", small_sim, "-o", out, "--workers", "1")
     assert "todo.txt" in made.output and (out / "gain_map.exr").is_file() and (out / "todo.txt").read_text() == "x"
 
 
-def test_evaluate_writes_where_asked_and_overwrites_only_its_file(sim, estimated, tmp_path):
+def test_evaluate_writes_where_asked_and_overwrites_only_its_file(small_sim, small_estimate, tmp_path):
     est = tmp_path / "est"
-    shutil.copytree(estimated, est)
+    shutil.copytree(small_estimate, est)
     elsewhere = tmp_path / "ev"
-    _run("evaluate", est, "--truth", sim, "-o", elsewhere, "-q")
+    run_cli("evaluate", est, "--truth", small_sim, "-o", elsewhere, "-q")
     assert (elsewhere / "evaluation.json").is_file() and not (est / "evaluation.json").exists()
-    _refused(_run("evaluate", est, "--truth", sim, "-o", elsewhere, ok=False), "evaluation.json", "--overwrite")
-    _run("evaluate", est, "--truth", sim, "-o", elsewhere, "--overwrite", "-q")
-    _run("evaluate", est, "--truth", sim, "-q")
+    one_error(run_cli("evaluate", est, "--truth", small_sim, "-o", elsewhere, ok=False), "evaluation.json", "--overwrite")
+    run_cli("evaluate", est, "--truth", small_sim, "-o", elsewhere, "--overwrite", "-q")
+    run_cli("evaluate", est, "--truth", small_sim, "-q")
     before = {k: v for k, v in _tree(est).items() if k != "evaluation.json"}
-    _run("evaluate", est, "--truth", sim, "--overwrite", "-q")
+    run_cli("evaluate", est, "--truth", small_sim, "--overwrite", "-q")
     assert {k: v for k, v in _tree(est).items() if k != "evaluation.json"} == before
 
 
-def test_batch_refuses_an_out_that_holds_a_burst_and_a_folder_it_did_not_write(sim, tmp_path):
+def test_batch_refuses_an_out_that_holds_a_burst_and_a_folder_it_did_not_write(small_sim, tmp_path):
     manifest = tmp_path / "bursts.yaml"
-    manifest.write_text(f"bursts:\n  - name: a\n    inputs: {sim}\n")
-    _refused(_run("batch", manifest, "-o", sim.parent, "-q", ok=False), "holds the input")
+    manifest.write_text(f"bursts:\n  - name: a\n    inputs: {small_sim}\n")
+    one_error(run_cli("batch", manifest, "-o", small_sim.parent, "-q", ok=False), "holds the input")
     out = tmp_path / "out"
     (out / "a").mkdir(parents=True)
     (out / "a" / "keep.txt").write_text("k")
-    _refused(_run("batch", manifest, "-o", out, "-q", ok=False), "was not written by gainfpn batch", "--overwrite")
+    one_error(run_cli("batch", manifest, "-o", out, "-q", ok=False), "was not written by gainfpn batch", "--overwrite")
     assert (out / "a" / "keep.txt").read_text() == "k"
 
 
@@ -162,10 +130,10 @@ def test_bench_overwrite_keeps_other_files(tmp_path, monkeypatch):
 
     monkeypatch.setattr(bench, "run", fake_run)
     out = tmp_path / "b"
-    _run("bench", "--quick", "-o", out, "-q")
+    run_cli("bench", "--quick", "-o", out, "-q")
     (out / "mine.md").write_text("m")
-    _refused(_run("bench", "--quick", "-o", out, "-q", ok=False), "--overwrite")
-    result = _run("bench", "--quick", "-o", out, "--overwrite")
+    one_error(run_cli("bench", "--quick", "-o", out, "-q", ok=False), "--overwrite")
+    result = run_cli("bench", "--quick", "-o", out, "--overwrite")
     assert "mine.md" in result.output and (out / "mine.md").read_text() == "m"
 
 

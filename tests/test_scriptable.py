@@ -11,58 +11,25 @@ import sys
 
 import numpy as np
 import pytest
-from click.testing import CliRunner
+from helpers import SMALL, one_error, run_cli
 
 from gainfpn_cli import pipeline
 from gainfpn_cli.cli import main
 from gainfpn_cli.files import read_frame, write_exr
 from gainfpn_cli.summary import EXIT_REJECTED
 
-SMALL = ["--size", "96x72", "--frames", "5", "-q"]
-
-
-def _run(*args, ok=True):
-    result = CliRunner().invoke(main, [str(a) for a in args])
-    if ok:
-        assert result.exit_code == 0, result.output
-    return result
-
-
-def _one_error(result, *words):
-    assert result.exit_code == 1, result.output
-    lines = result.output.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("Error: "), result.output
-    assert "None" not in lines[0]
-    for word in words:
-        assert str(word) in lines[0], lines[0]
-
-
-@pytest.fixture(scope="module")
-def sim(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("script") / "burst"
-    _run("simulate", folder, *SMALL)
-    return folder
-
-
-@pytest.fixture(scope="module")
-def estimated(sim, tmp_path_factory):
-    folder = tmp_path_factory.mktemp("script") / "est"
-    _run("estimate", sim, "-o", folder, "-q", "--workers", "1")
-    return folder
-
-
 # ---------------------------------------------------------------------------
 # apply after estimate --dark
 
 
-def test_apply_gives_the_frames_estimate_wrote_with_its_dark_frame(sim, tmp_path):
+def test_apply_gives_the_frames_estimate_wrote_with_its_dark_frame(small_sim, tmp_path):
     dark = tmp_path / "dark.exr"
     write_exr(dark, {"Y": np.full((72, 96), 3.0, np.float32)})
     est = tmp_path / "est"
-    _run("estimate", sim, "-o", est, "-q", "--workers", "1", "--dark", dark)
+    run_cli("estimate", small_sim, "-o", est, "-q", "--workers", "1", "--dark", dark)
     applied = tmp_path / "applied"
-    _run("apply", sim, "--gain-map", est / "gain_map.exr", "-o", applied, "-q")  # the dark from the header
-    for frame in sorted(sim.glob("frame_*.exr")):
+    run_cli("apply", small_sim, "--gain-map", est / "gain_map.exr", "-o", applied, "-q")  # the dark from the header
+    for frame in sorted(small_sim.glob("frame_*.exr")):
         ours = read_frame(applied / frame.name).data
         np.testing.assert_array_equal(ours, read_frame(est / "corrected" / frame.name).data)
     # the dark level is really subtracted (not only equal by accident): without it the frames differ
@@ -71,20 +38,20 @@ def test_apply_gives_the_frames_estimate_wrote_with_its_dark_frame(sim, tmp_path
 
     other = tmp_path / "other.exr"
     write_exr(other, {"Y": np.full((72, 96), 4.0, np.float32)})
-    _one_error(_run("apply", sim, "--gain-map", est / "gain_map.exr", "-o", tmp_path / "x", "--dark", other,
+    one_error(run_cli("apply", small_sim, "--gain-map", est / "gain_map.exr", "-o", tmp_path / "x", "--dark", other,
                     ok=False), "is not the dark frame the gain map was estimated with")
     moved = tmp_path / "moved.exr"
     shutil.move(dark, moved)
-    _one_error(_run("apply", sim, "--gain-map", est / "gain_map.exr", "-o", tmp_path / "y", ok=False),
+    one_error(run_cli("apply", small_sim, "--gain-map", est / "gain_map.exr", "-o", tmp_path / "y", ok=False),
                "which is gone; pass it with --dark")
-    _run("apply", sim, "--gain-map", est / "gain_map.exr", "-o", tmp_path / "z", "--dark", moved, "-q")
+    run_cli("apply", small_sim, "--gain-map", est / "gain_map.exr", "-o", tmp_path / "z", "--dark", moved, "-q")
     assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
 
 
-def test_a_dark_frame_for_a_map_made_without_one_is_refused(sim, estimated, tmp_path):
+def test_a_dark_frame_for_a_map_made_without_one_is_refused(small_sim, small_estimate, tmp_path):
     dark = tmp_path / "dark.exr"
     write_exr(dark, {"Y": np.zeros((72, 96), np.float32)})
-    _one_error(_run("apply", sim, "--gain-map", estimated / "gain_map.exr", "-o", tmp_path / "o", "--dark", dark,
+    one_error(run_cli("apply", small_sim, "--gain-map", small_estimate / "gain_map.exr", "-o", tmp_path / "o", "--dark", dark,
                     ok=False), "was estimated without a dark frame")
 
 
@@ -94,13 +61,13 @@ def test_a_dark_frame_for_a_map_made_without_one_is_refused(sim, estimated, tmp_
 
 def test_batch_runs_a_burst_again_when_its_inputs_or_config_changed(tmp_path):
     burst = tmp_path / "b"
-    _run("simulate", burst, *SMALL)
+    run_cli("simulate", burst, *SMALL)
     manifest = tmp_path / "m.yaml"
     manifest.write_text("bursts:\n  - {name: a, inputs: b}\n")
     out = tmp_path / "out"
 
     def batch(*extra):
-        result = _run("batch", manifest, "-o", out, "--json", *extra)
+        result = run_cli("batch", manifest, "-o", out, "--json", *extra)
         return json.loads(result.stdout)["bursts"][0]
 
     assert batch()["earlier"] is False
@@ -118,10 +85,10 @@ def test_batch_runs_a_burst_again_when_its_inputs_or_config_changed(tmp_path):
     assert row["earlier"] is False and row["fpn_models"] == "paper"
 
 
-def test_the_summary_rounds_each_column_the_same_way(tmp_path, sim):
+def test_the_summary_rounds_each_column_the_same_way(tmp_path, small_sim):
     manifest = tmp_path / "m.yaml"
-    manifest.write_text(f"bursts:\n  - {{name: a, inputs: {sim}}}\n")
-    _run("batch", manifest, "-o", tmp_path / "out", "-q")
+    manifest.write_text(f"bursts:\n  - {{name: a, inputs: {small_sim}}}\n")
+    run_cli("batch", manifest, "-o", tmp_path / "out", "-q")
     from gainfpn_cli.tools.batch import COLUMNS
 
     header, line = (tmp_path / "out" / "summary.csv").read_text().splitlines()
@@ -140,10 +107,10 @@ def test_the_summary_rounds_each_column_the_same_way(tmp_path, sim):
     (["--size", "96x72", "--frames", "5", "--bits", "10"], ["white level 1023 DN", "(255 DN)", "bit depth"]),
     (["--size", "96x72", "--frames", "5", "--seed", "9"], ["differs from the frame frame_000.exr"]),
 ])
-def test_evaluate_refuses_a_truth_that_is_not_the_estimates(estimated, tmp_path, options, words):
+def test_evaluate_refuses_a_truth_that_is_not_the_estimates(small_estimate, tmp_path, options, words):
     other = tmp_path / "other"
-    _run("simulate", other, *options, "-q")
-    _one_error(_run("evaluate", estimated, "--truth", other, "-o", tmp_path / "ev", ok=False), *words)
+    run_cli("simulate", other, *options, "-q")
+    one_error(run_cli("evaluate", small_estimate, "--truth", other, "-o", tmp_path / "ev", ok=False), *words)
     assert not (tmp_path / "ev").exists()
 
 
@@ -151,52 +118,52 @@ def test_evaluate_refuses_a_truth_that_is_not_the_estimates(estimated, tmp_path,
 # --json, --strict, -q
 
 
-def test_json_records_say_what_a_pipeline_needs(sim, estimated, tmp_path):
-    est = json.loads(_run("estimate", sim, "-o", tmp_path / "e", "--workers", "1", "--json").stdout)
+def test_json_records_say_what_a_pipeline_needs(small_sim, small_estimate, tmp_path):
+    est = json.loads(run_cli("estimate", small_sim, "-o", tmp_path / "e", "--workers", "1", "--json").stdout)
     assert est["status"] == "accepted" and est["holdout"]["passed"] is True
     assert 4.0 < est["prnu_percent"]["total"] < 6.0  # simulated 5 % pixel FPN
     assert set(est["prnu_percent"]) == {"total", "pixel", "column", "row", "planes"}
     assert 0 < est["predicted_residual_percent"] < est["prnu_percent"]["total"]
     assert est["outputs"]["gain_map"] == str((tmp_path / "e" / "gain_map.exr").absolute())
     assert est["warnings"] == []
-    applied = json.loads(_run("apply", sim, "--gain-map", estimated / "gain_map.exr", "-o", tmp_path / "a",
+    applied = json.loads(run_cli("apply", small_sim, "--gain-map", small_estimate / "gain_map.exr", "-o", tmp_path / "a",
                               "--json").stdout)
     assert applied["status"] == "done" and len(applied["outputs"]) == 5
-    scores = json.loads(_run("evaluate", estimated, "--truth", sim, "-o", tmp_path / "v", "--json").stdout)
+    scores = json.loads(run_cli("evaluate", small_estimate, "--truth", small_sim, "-o", tmp_path / "v", "--json").stdout)
     assert scores["residual_fpn_percent"] < scores["input_fpn_percent"]
     assert scores["evaluation"] == str((tmp_path / "v" / "evaluation.json").absolute())
 
 
-def test_strict_makes_a_rejected_estimate_exit_with_its_own_status(sim, tmp_path, monkeypatch):
+def test_strict_makes_a_rejected_estimate_exit_with_its_own_status(small_sim, tmp_path, monkeypatch):
     monkeypatch.setattr(pipeline, "holdout_ratio", lambda *args, **kwargs: 1.5)  # the held-out frame says no
-    lenient = _run("estimate", sim, "-o", tmp_path / "a", "--workers", "1", "--json")
+    lenient = run_cli("estimate", small_sim, "-o", tmp_path / "a", "--workers", "1", "--json")
     assert json.loads(lenient.stdout)["status"] == "rejected"
-    strict = _run("estimate", sim, "-o", tmp_path / "b", "--workers", "1", "--strict", "-q", ok=False)
+    strict = run_cli("estimate", small_sim, "-o", tmp_path / "b", "--workers", "1", "--strict", "-q", ok=False)
     assert strict.exit_code == EXIT_REJECTED == 3
     assert (tmp_path / "b" / "gain_map.exr").is_file()  # k = 1 is still written, as without --strict
     manifest = tmp_path / "m.yaml"
-    manifest.write_text(f"bursts:\n  - {{name: a, inputs: {sim}}}\n")
-    assert _run("batch", manifest, "-o", tmp_path / "c", "-q").exit_code == 0
-    assert _run("batch", manifest, "-o", tmp_path / "c", "-q", "--strict", ok=False).exit_code == EXIT_REJECTED
+    manifest.write_text(f"bursts:\n  - {{name: a, inputs: {small_sim}}}\n")
+    assert run_cli("batch", manifest, "-o", tmp_path / "c", "-q").exit_code == 0
+    assert run_cli("batch", manifest, "-o", tmp_path / "c", "-q", "--strict", ok=False).exit_code == EXIT_REJECTED
 
 
 def test_every_command_has_quiet_and_shows_defaults():
     for name, command in main.commands.items():
         assert "-q" in [opt for p in command.params for opt in p.opts], name
     flat = lambda text: " ".join(text.split())  # noqa: E731 (help is wrapped to the terminal's width)
-    assert "Frames in the burst. [default: 8;" in flat(_run("simulate", "--help").output)
-    assert "[default: 2 (config solver.workers)]" in flat(_run("estimate", "--help").output)
+    assert "Frames in the burst. [default: 8;" in flat(run_cli("simulate", "--help").output)
+    assert "[default: 2 (config solver.workers)]" in flat(run_cli("estimate", "--help").output)
 
 
-def test_quiet_prints_nothing_but_warnings(sim, tmp_path):
-    made = _run("simulate", tmp_path / "s", "--size", "64x64", "--frames", "4", "-q")
+def test_quiet_prints_nothing_but_warnings(small_sim, tmp_path):
+    made = run_cli("simulate", tmp_path / "s", "--size", "64x64", "--frames", "4", "-q")
     assert made.output == ""
-    est = _run("estimate", sim, "-o", tmp_path / "e", "--workers", "1", "-q")
+    est = run_cli("estimate", small_sim, "-o", tmp_path / "e", "--workers", "1", "-q")
     assert est.output == ""
 
 
-def test_the_paper_preset_works(sim, tmp_path):
-    result = _run("estimate", sim, "-o", tmp_path / "p", "--preset", "paper", "--workers", "1")
+def test_the_paper_preset_works(small_sim, tmp_path):
+    result = run_cli("estimate", small_sim, "-o", tmp_path / "p", "--preset", "paper", "--workers", "1")
     assert "FPN model paper" in result.output
     assert json.loads((tmp_path / "p" / "report.json").read_text())["config"]["solver"]["method"] == "paper"
 
@@ -205,17 +172,17 @@ def test_the_paper_preset_works(sim, tmp_path):
 # inputs and progress
 
 
-def test_a_glob_skips_other_files_as_a_directory_does(sim, tmp_path):
+def test_a_glob_skips_other_files_as_a_directory_does(small_sim, tmp_path):
     from gainfpn_cli.files import find_frames
 
     (tmp_path / "b").mkdir()
-    for p in sim.glob("frame_*.exr"):
+    for p in small_sim.glob("frame_*.exr"):
         shutil.copy(p, tmp_path / "b" / p.name)
     (tmp_path / "b" / "notes.txt").write_text("n")
     (tmp_path / "b" / "thumb.jpg").write_bytes(b"\xff\xd8")
     from_dir = find_frames([tmp_path / "b"])
     assert find_frames([str(tmp_path / "b" / "*")]) == from_dir and len(from_dir) == 5
-    _one_error(_run("estimate", str(tmp_path / "b" / "*.txt"), "-o", tmp_path / "o", ok=False),
+    one_error(run_cli("estimate", str(tmp_path / "b" / "*.txt"), "-o", tmp_path / "o", ok=False),
                "pattern matches no EXR or RAW frame (only notes.txt)")
 
 
@@ -243,5 +210,5 @@ def test_messages_never_show_python_none(tmp_path):
 
 
 def test_the_exit_status_of_a_rejected_estimate_is_documented():
-    help_text = _run("estimate", "--help").output
+    help_text = run_cli("estimate", "--help").output
     assert f"{EXIT_REJECTED} then with --strict" in " ".join(help_text.split())
