@@ -153,8 +153,7 @@ def run_burst(job: Job, out: str | os.PathLike, *, defaults: Defaults = Defaults
     run again unless ``overwrite``. Errors of the burst itself (input, config, estimation) make a
     ``failed`` row; only an interrupt or a bug raises.
     """
-    from ..outputs import write_estimate
-    from ..pipeline import estimate, load_burst
+    from ..api import estimate
 
     folder = Path(out) / job.name
     t0 = time.perf_counter()
@@ -163,9 +162,7 @@ def run_burst(job: Job, out: str | os.PathLike, *, defaults: Defaults = Defaults
         report = None if overwrite else stored_report(folder, job, cfg)
         if report is not None:
             return {**_row(job.name, report, report.timings["total_s"]), "earlier": True}
-        burst = load_burst(job.inputs, cfg)  # as `estimate` reads its INPUTS
-        result = estimate(burst, cfg)
-        written = write_estimate(result, burst, cfg, folder, overwrite=True)  # the batch's own folder
+        written = estimate(job.inputs, config=cfg).write(folder, overwrite=True)  # the batch's own folder
     except GainFPNError as exc:
         return {**_failed(job.name, str(exc)), "time_s": round(time.perf_counter() - t0, 2)}
     return _row(job.name, written.report, time.perf_counter() - t0)
