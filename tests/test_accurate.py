@@ -279,7 +279,7 @@ def test_a_poorly_determined_solve_stops_early_and_gains_by_it():
 
 
 def test_sample_phase_is_zero_on_pixels_and_two_between_four():
-    from gainfpn_cli.solve.accurate import sample_phase
+    from gainfpn_cli.solve.phase import sample_phase
 
     shift = lambda dx, dy: np.array([[1.0, 0, dx], [0, 1.0, dy], [0, 0, 1.0]])  # noqa: E731
     np.testing.assert_allclose(sample_phase(shift(3.0, -2.0), (4, 5)), 0.0, atol=1e-6)
@@ -291,7 +291,7 @@ def test_sample_phase_is_zero_on_pixels_and_two_between_four():
 def test_phase_weights_recover_the_precision_of_each_comparison():
     # residuals drawn with variance a + b phase (a: noise, b: interpolation
     # error, larger on the right half); the weights are u / (a + b phase)
-    from gainfpn_cli.solve.accurate import _phase_weighted, sample_phase
+    from gainfpn_cli.solve.phase import phase_weighted, sample_phase
 
     rng = np.random.default_rng(5)
     shape = (64, 64)
@@ -300,14 +300,14 @@ def test_phase_weights_recover_the_precision_of_each_comparison():
                  for dx, dy in rng.uniform(-3, 3, (40, 2))]
     valid = [np.ones(shape, bool)] * len(pair_maps)
     residuals = [np.sqrt(a + b * sample_phase(M, shape)) * rng.standard_normal(shape) for _, _, M in pair_maps]
-    weights = _phase_weighted([np.ones(shape) for _ in pair_maps], residuals, valid, pair_maps, shape)
+    weights = phase_weighted([np.ones(shape) for _ in pair_maps], residuals, valid, pair_maps, shape)
     # w (a + b phase) is the same constant u ~ a for every comparison, on both halves
     scaled = np.stack([w * (a + b * sample_phase(M, shape)) for w, (_, _, M) in zip(weights, pair_maps)])
     for half in (slice(8, 24), slice(40, 56)):  # away from the seam and the border
         core = scaled[:, 8:-8, half]
         assert np.median(core) == pytest.approx(a, rel=0.15)
         assert np.percentile(core, 95) / np.percentile(core, 5) < 2.0  # a 9x9 window's fit, not exact
-    flat = _phase_weighted([np.ones(shape) for _ in pair_maps], [np.sqrt(a) * rng.standard_normal(shape)
+    flat = phase_weighted([np.ones(shape) for _ in pair_maps], [np.sqrt(a) * rng.standard_normal(shape)
                                                                for _ in pair_maps], valid, pair_maps, shape)
     assert np.percentile(np.stack(flat), 5) > 0.6  # no interpolation error: every comparison keeps ~ its weight
 
