@@ -77,6 +77,9 @@ def estimate(inputs, *, config: Config | str | os.PathLike | None = None, preset
     """
     cfg = config_of(config, preset=preset, **overrides)
     if isinstance(inputs, np.ndarray):
+        if cfg.input.dark is not None:
+            raise InputError("input.dark: subtract the dark frame from an array before passing it")
+        saturation = cfg.input.saturation if saturation is None else saturation
         loaded = burst_of(inputs, cfa=cfa, saturation=saturation, reference=cfg.input.reference)
     else:
         loaded = load_burst([inputs] if isinstance(inputs, (str, os.PathLike)) else list(inputs), cfg,
@@ -91,9 +94,11 @@ def burst_of(frames: np.ndarray, *, cfa: str | None = None, saturation: float | 
     frames = np.asarray(frames, np.float32)
     if frames.ndim == 3:
         frames = frames[..., None]
-    if frames.ndim != 4 or (cfa and frames.shape[3] != 1):
-        raise InputError(f"frames must have shape (F, H, W) or (F, H, W, C) (one channel for a CFA mosaic), "
+    if frames.ndim != 4 or frames.shape[3] not in (1, 3) or (cfa and frames.shape[3] != 1):
+        raise InputError(f"frames must have shape (F, H, W) or (F, H, W, 3) (one channel for a CFA mosaic), "
                          f"got {frames.shape}")
+    if not 0 <= reference < len(frames):
+        raise InputError(f"input.reference is {reference} but there are only {len(frames)} frames")
     channels = ("Y",) if frames.shape[3] == 1 else ("R", "G", "B")[: frames.shape[3]]
     paths = [Path(f"frame_{i:03d}") for i in range(len(frames))]
     return _burst.LoadedBurst(paths, frames, cfa, channels, saturation, reference)

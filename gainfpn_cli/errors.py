@@ -1,5 +1,9 @@
 """Exceptions a user can meet; the CLI turns each into one line and exit 1."""
 
+#: Exit status of ``estimate`` / ``batch`` with ``--strict`` when the hold-out frame rejects an estimate
+#: (k = 1 was written). 1 is a user error, 2 a usage error, 130 / 143 an interrupt.
+EXIT_REJECTED = 3
+
 
 class GainFPNError(Exception):
     """Base class of every error gainfpn reports to the user."""

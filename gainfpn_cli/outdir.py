@@ -19,6 +19,7 @@ input, holds one (at any depth), or whose replacement would touch one.
 from __future__ import annotations
 
 import contextlib
+import glob
 import json
 import os
 import shutil
@@ -108,7 +109,11 @@ def prepare(out_dir: str | os.PathLike, *, command: str, names: Iterable[str] = 
     names = set(names)
     manifest = read_manifest(out_dir) if out_dir.is_dir() else {}
     stale = {n for n, c in manifest.items() if c == command or c in DEPENDENTS.get(command, ())}
-    replace = {n for n in names | stale if (out_dir / n).exists() or (out_dir / n).is_symlink()}
+    replace = {n for n in names | stale if _exists(out_dir / n)}
+    foreign = sorted(n for n in replace if n not in manifest)
+    if foreign:  # a name this run writes, held by something gainfpn did not write: never replaced
+        raise InputError(f"{out_dir / foreign[0]}: exists and was not written by gainfpn (gainfpn would write "
+                         "its own there); move it away or choose another output folder")
     for path in inputs:
         real = _real(path)
         if real == real_out:
@@ -136,8 +141,19 @@ def prepare(out_dir: str | os.PathLike, *, command: str, names: Iterable[str] = 
     return OutputPlan(out_dir, command, frozenset(replace), untouched, overwrite)
 
 
+def _exists(path: Path) -> bool:
+    return path.exists() or path.is_symlink()
+
+
+def _beside(out_dir: Path, kind: str, pid: str) -> Path:
+    """A folder beside ``out_dir`` (beside what a link named ``out_dir`` points to: on its file
+    system, so that every move into ``out_dir`` is a rename)."""
+    real = Path(os.path.realpath(out_dir))
+    return real.parent / f".{real.name}.{kind}-{pid}"
+
+
 def staging_name(out_dir: Path, pid: str) -> Path:
-    return out_dir.parent / f".{out_dir.name}.tmp-{pid}"
+    return _beside(out_dir, "tmp", pid)
 
 
 @contextlib.contextmanager
@@ -165,40 +181,76 @@ def staged(plan: OutputPlan) -> Iterator[Path]:
 
 
 def commit(plan: OutputPlan, tmp: Path) -> list[str]:
-    """Move every entry of ``tmp`` into ``plan.out_dir`` by name; return the names written."""
+    """Move every entry of ``tmp`` into ``plan.out_dir`` by name; return the names written.
+
+    Ctrl-C and SIGTERM wait until the moves are done. If a move fails, the folder is put back as
+    it was; if even that fails, the earlier outputs are kept in a folder the error names."""
     out_dir = plan.out_dir
     new = sorted(p.name for p in tmp.iterdir())
-    clash = [n for n in new if (out_dir / n).exists() and n not in plan.replace]
-    if clash and not plan.overwrite:  # an output whose name was not known before the work
-        raise InputError(f"{out_dir / clash[0]}: exists; pass --overwrite to replace it")
-    out_dir.mkdir(parents=True, exist_ok=True)
-    manifest = read_manifest(out_dir)
-    old = out_dir.parent / f".{out_dir.name}.old-{os.getpid()}"
-    shutil.rmtree(old, ignore_errors=True)
-    old.mkdir()
-    moved_aside: list[str] = []
-    moved_in: list[str] = []
+    clash = [n for n in new if _exists(out_dir / n) and n not in plan.replace]
+    if clash:  # something appeared under an output's name during the work
+        raise InputError(f"{out_dir / clash[0]}: exists and was not written by gainfpn; move it away or choose "
+                         "another output folder")
+    with _signals_held():
+        try:
+            out_dir.mkdir(parents=True, exist_ok=True)
+            manifest = read_manifest(out_dir)
+            old = _beside(out_dir, "old", str(os.getpid()))
+            shutil.rmtree(old, ignore_errors=True)
+            old.mkdir()
+        except OSError as exc:
+            raise InputError(f"{out_dir}: cannot write here ({exc.strerror or exc})") from None
+        moved_aside: list[str] = []
+        moved_in: list[str] = []
+        try:
+            for name in sorted(plan.replace):
+                if _exists(out_dir / name):
+                    os.replace(out_dir / name, old / name)
+                    moved_aside.append(name)
+            for name in new:
+                os.replace(tmp / name, out_dir / name)
+                moved_in.append(name)
+            for name in moved_aside:
+                manifest.pop(name, None)
+            manifest.update({name: plan.command for name in new})
+            _write_manifest(out_dir, manifest)
+        except BaseException as exc:
+            _put_back(out_dir, tmp, old, moved_in, moved_aside)
+            if isinstance(exc, OSError):
+                raise InputError(f"{out_dir}: cannot write here ({exc.strerror or exc})") from None
+            raise
+        shutil.rmtree(old, ignore_errors=True)
+    return new
+
+
+def _put_back(out_dir: Path, tmp: Path, old: Path, moved_in: list[str], moved_aside: list[str]) -> None:
+    """Undo a commit's moves; the earlier outputs' folder is deleted only once they are all back."""
     try:
-        for name in sorted(plan.replace | set(clash)):
-            if (out_dir / name).exists() or (out_dir / name).is_symlink():
-                os.replace(out_dir / name, old / name)
-                moved_aside.append(name)
-        for name in new:
-            os.replace(tmp / name, out_dir / name)
-            moved_in.append(name)
-        for name in moved_aside:
-            manifest.pop(name, None)
-        manifest.update({name: plan.command for name in new})
-        _write_manifest(out_dir, manifest)
-    except BaseException:
-        for name in moved_in:  # put the folder back as it was
+        for name in moved_in:
             os.replace(out_dir / name, tmp / name)
         for name in moved_aside:
             os.replace(old / name, out_dir / name)
-        raise
+    except OSError as exc:
+        raise InputError(f"{out_dir}: could not put the earlier outputs back ({exc.strerror or exc}); they are in "
+                         f"{old}") from None
+    shutil.rmtree(old, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def _signals_held() -> Iterator[None]:
+    """Ctrl-C and SIGTERM are delivered after the block (in the main thread; elsewhere as they come)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread() or not hasattr(signal, "pthread_sigmask"):
+        yield
+        return
+    held = {signal.SIGINT, signal.SIGTERM}
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, held)
+    try:
+        yield
     finally:
-        shutil.rmtree(old, ignore_errors=True)
-    return new
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
 def record(out_dir: Path, names: Iterable[str], command: str) -> None:
@@ -218,8 +270,8 @@ def _write_manifest(out_dir: Path, entries: dict[str, str]) -> None:
 
 def remove_staging(out_dir: str | os.PathLike) -> None:
     """Remove the staging folders of ``out_dir`` that processes killed mid-write left behind
-    (:func:`staged` removes its own on any exception it sees)."""
-    out_dir = Path(out_dir)
-    for pattern in (staging_name(out_dir, "*").name, f".{out_dir.name}.old-*"):
-        for stale in out_dir.parent.glob(pattern):
-            shutil.rmtree(stale, ignore_errors=True)
+    (:func:`staged` removes its own on any exception it sees). A folder of earlier outputs a
+    killed commit moved aside is kept: it may be their only copy."""
+    real = Path(os.path.realpath(out_dir))
+    for stale in real.parent.glob(glob.escape(f".{real.name}.tmp-") + "*"):
+        shutil.rmtree(stale, ignore_errors=True)

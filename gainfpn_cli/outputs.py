@@ -57,12 +57,17 @@ class Written:
 ESTIMATE_OUTPUTS = ("gain_map.exr", "corrected", "preview.png", "config.used.yaml", "report.json")
 
 
-def estimate_plan(out_dir: Path, paths, cfg: Config, *, overwrite: bool = False, files=None) -> OutputPlan:
+def estimate_plan(out_dir: Path, paths, cfg: Config, *, overwrite: bool = False, files=None,
+                  also_read=()) -> OutputPlan:
     """Check ``out_dir`` for an estimate of the frames ``paths`` before any work (:func:`outdir.prepare`);
-    ``files`` are the frames' files if not ``paths`` (none for frames given as an array)."""
+    ``files`` are the frames' files if not ``paths`` (none for frames given as an array), ``also_read``
+    other files the run reads (its config)."""
     _check_unique_stems(list(paths))
-    inputs = [*(paths if files is None else files), *([cfg.input.dark] if cfg.input.dark else [])]
-    return prepare(out_dir, command="estimate", names=ESTIMATE_OUTPUTS, inputs=inputs, overwrite=overwrite)
+    inputs = [*(paths if files is None else files), *([cfg.input.dark] if cfg.input.dark else []), *also_read]
+    skipped = {"corrected"} if not cfg.output.corrected else set()
+    skipped |= {"preview.png"} if not cfg.output.preview else set()
+    return prepare(out_dir, command="estimate", names=[n for n in ESTIMATE_OUTPUTS if n not in skipped],
+                   inputs=inputs, overwrite=overwrite)
 
 
 def write_estimate(result: Estimate, burst: LoadedBurst, cfg: Config, out_dir: Path, *, overwrite: bool = False,
@@ -208,7 +213,11 @@ def apply_dark(attrs: dict, dark: Path | None, gain_map: Path) -> Path | None:
     """The dark frame to subtract before ``k``: the one the map was estimated with (its header
     records path and digest), found at its recorded path or given as ``dark``; a different
     dark frame, or one for a map estimated without, is refused."""
-    recorded = json.loads(attrs[ATTR_DARK]) if ATTR_DARK in attrs else None
+    try:
+        recorded = json.loads(attrs[ATTR_DARK]) if ATTR_DARK in attrs else None
+        recorded = None if recorded is None else {"path": str(recorded["path"]), "sha256": str(recorded["sha256"])}
+    except (ValueError, KeyError, TypeError):
+        raise InputError(f"{gain_map}: damaged header (its {ATTR_DARK} attribute is not a path and a digest)") from None
     if recorded is None:
         if dark is not None:
             raise InputError(f"{gain_map}: was estimated without a dark frame, so --dark {dark} would correct "

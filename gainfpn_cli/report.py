@@ -1,7 +1,8 @@
 """The report of an estimate: typed, and written as ``report.json`` by :meth:`Report.to_json`.
 
 Every stage that says something about an estimate (the summary line, ``--json``, the batch
-summary, the preview, ``evaluate``, the bench) reads these fields, never a dict by string keys.
+summary, the preview, ``evaluate``, the bench) reads these fields. Three are still plain data
+whose keys depend on the solver or the model: ``planes``, ``exposure`` and ``motion.frames``.
 Relative figures are in percent.
 """
 

@@ -7,10 +7,6 @@ from pathlib import Path
 
 from .report import Holdout, Prnu, Report
 
-#: Exit status of ``estimate`` / ``batch`` with ``--strict`` when the hold-out frame rejects an estimate
-#: (k = 1 was written). 1 is a user error, 2 a usage error, 130 / 143 an interrupt.
-EXIT_REJECTED = 3
-
 
 def prnu_text(prnu: Prnu) -> str:
     """``PRNU 5.02 % (pixel 4.98, column 0.41, row 0.12 %)``, or what is missing."""

@@ -93,3 +93,9 @@ def test_the_model_names_are_those_of_the_models():
     k, conf = np.ones((8, 8), np.float32), np.full((8, 8), 0.5, np.float32)
     assert set(select_model(k, conf).scores) == set(solve.FPN_MODELS)
     assert Config().motion.model == "auto" and Config().solver.fpn_model == "auto"
+
+
+def test_the_command_line_loads_without_numpy():
+    code = "import sys, gainfpn_cli.cli; print('numpy' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "False"  # gainfpn --help: click, yaml and the package's light modules only

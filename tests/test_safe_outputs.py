@@ -156,7 +156,7 @@ def test_a_failed_commit_puts_the_folder_back(tmp_path, monkeypatch):
             raise OSError("disk full")
         return real_replace(src, dst)
 
-    with pytest.raises(OSError):
+    with pytest.raises(InputError, match="disk full"):  # one line for the user, not a traceback
         with outdir.staged(plan) as tmp:
             (tmp / "a.txt").write_text("new a")
             (tmp / "b.txt").write_text("new b")
@@ -189,3 +189,28 @@ def test_an_input_inside_a_replaced_folder_is_refused(tmp_path):
     with pytest.raises(InputError, match="would be replaced but holds the input"):
         outdir.prepare(out, command="estimate", names=["corrected"], inputs=[frame], overwrite=True,
                        beside_inputs=True)
+
+
+def test_a_folder_of_an_outputs_name_that_gainfpn_did_not_write_is_never_replaced(small_sim, tmp_path):
+    out = tmp_path / "out"
+    (out / "corrected").mkdir(parents=True)
+    (out / "corrected" / "notes.txt").write_text("mine\n")
+    for extra in ([], ["--overwrite"]):
+        one_error(run_cli("estimate", small_sim, "-o", out, "--workers", "1", *extra, ok=False),
+                  out / "corrected", "was not written by gainfpn")
+    assert (out / "corrected" / "notes.txt").read_text() == "mine\n"
+    config = tmp_path / "no_frames.yaml"
+    config.write_text("output: {corrected: false}\n")  # a run that writes no corrected/ leaves it alone
+    run_cli("estimate", small_sim, "-o", out, "--workers", "1", "-c", config, "-q")
+    assert (out / "corrected" / "notes.txt").read_text() == "mine\n" and (out / "gain_map.exr").is_file()
+
+
+def test_the_config_a_run_reads_is_an_input_too(small_sim, tmp_path):
+    out = tmp_path / "out"
+    run_cli("estimate", small_sim, "-o", out, "--workers", "1", "-q")
+    edited = out / "config.used.yaml"
+    edited.write_text(edited.read_text().replace("lam: 0.0", "lam: 0.001"))
+    before = edited.read_text()
+    one_error(run_cli("estimate", small_sim, "-o", out, "-c", edited, "--overwrite", ok=False), "holds the input",
+              "config.used.yaml")
+    assert edited.read_text() == before

@@ -15,8 +15,8 @@ from helpers import SMALL, one_error, run_cli
 
 from gainfpn_cli import pipeline
 from gainfpn_cli.cli import main
+from gainfpn_cli.errors import EXIT_REJECTED
 from gainfpn_cli.files import read_frame, write_exr
-from gainfpn_cli.summary import EXIT_REJECTED
 
 # ---------------------------------------------------------------------------
 # apply after estimate --dark
@@ -81,6 +81,11 @@ def test_batch_runs_a_burst_again_when_its_inputs_or_config_changed(tmp_path):
     assert json.loads((out / "a" / "report.json").read_text())["config"]["solver"]["lam"] == 0.01
     assert batch("-c", config)["earlier"] is True
     assert batch("-c", config, "--overwrite")["earlier"] is False
+    from gainfpn_cli.tools.batch import Defaults, load_manifest, run_burst
+
+    # resumed with another solver process count (a cluster's one): the same result, so not run again
+    row = run_burst(load_manifest(manifest)[0], out, defaults=Defaults(config=config), solver_workers=1)
+    assert row["earlier"] is True
     row = batch("--preset", "paper")
     assert row["earlier"] is False and row["fpn_models"] == "paper"
 

@@ -14,8 +14,7 @@ from pathlib import Path
 import click
 
 from .. import __version__
-from ..errors import GainFPNError
-from ..summary import EXIT_REJECTED
+from ..errors import EXIT_REJECTED, GainFPNError
 
 
 class _Terminated(KeyboardInterrupt):

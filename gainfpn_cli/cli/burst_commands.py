@@ -8,7 +8,7 @@ from pathlib import Path
 
 import click
 
-from ..summary import EXIT_REJECTED
+from ..errors import EXIT_REJECTED
 from . import (
     _cfg,
     close,
@@ -64,7 +64,8 @@ def estimate(inputs, out_dir, config_path, preset, method, workers, block_size, 
     cfg = load_config(config_path, preset=preset, overrides={
         "solver.method": method, "solver.workers": workers, "solver.block_size": block_size, "solver.lam": lam,
         "input.reference": reference, "input.dark": dark})
-    estimate_plan(out_dir, find_frames(inputs), cfg, overwrite=overwrite)  # refuse before any work
+    estimate_plan(out_dir, find_frames(inputs), cfg, overwrite=overwrite,  # refuse before any work
+                  also_read=[config_path] if config_path else [])
     progress = progress_bars(quiet)
     with contextlib.ExitStack() as stack:
         executor = None

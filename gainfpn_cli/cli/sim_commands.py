@@ -138,7 +138,7 @@ def bench(out_dir, quick, groups, overwrite, quiet):
 
     Presets, knob sweeps, the paper's published form, a flat-field
     calibration and the noise floor, scaling, parallel efficiency and
-    flow-error sensitivity (see gainfpn_cli/bench.py).
+    flow-error sensitivity (see gainfpn_cli/tools/bench).
     """
     from ..outdir import prepare, staged
     from ..tools.bench import OUTPUTS, plan, run

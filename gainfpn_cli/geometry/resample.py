@@ -1,7 +1,7 @@
 """Resampling one frame onto another's pixel grid: ``dst(q) = src(M q)``.
 
 ``M`` is a 3x3 homography, or a float32 ``(h, w, 2)`` map holding ``M q``
-for every ``q`` (a field motion model, :mod:`trajectory`). OpenCV's
+for every ``q`` (a field motion model, :mod:`geometry.warps`). OpenCV's
 ``warpPerspective`` with ``WARP_INVERSE_MAP`` does the first without
 building coordinate maps, ``remap`` the second. Both quantise sub-pixel
 positions to 1/32 px (RMS position error 0.009 px), well below the 0.05 px
@@ -52,7 +52,7 @@ def bounded(M: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     """``M`` with a map's positions far outside a ``shape`` source brought to just outside it.
 
     OpenCV's reflecting border walks back into the frame one reflection at a
-    time: a map holding :data:`trajectory.NOWHERE` for 5 % of its pixels
+    time: a map holding :data:`geometry.warps.NOWHERE` for 5 % of its pixels
     remaps 7x slower (120x160, Lanczos-4: 2.8 ms against 0.4 ms). Samples
     there are invalid either way (:func:`valid_samples`). A 3x3 ``M`` is
     returned as it is.

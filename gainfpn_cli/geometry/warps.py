@@ -17,7 +17,7 @@ directions. The map from a frame to the reference is direct,
 contraction wherever the field's slope is well below 1.
 
 Every map takes and returns ``(x, y)`` points. :meth:`pair` gives what the
-resamplers in :mod:`warp` take: a 3x3 matrix for a global warp (OpenCV's
+resamplers in :mod:`geometry.resample` take: a 3x3 matrix for a global warp (OpenCV's
 ``warpPerspective``), an ``(h, w, 2)`` float32 map otherwise (``remap``).
 """
 

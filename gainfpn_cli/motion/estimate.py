@@ -75,7 +75,7 @@ def estimate_motion(
 
     Corners of the reference are tracked into each frame (pyramidal
     Lucas-Kanade: shakes of tens of pixels work); the global models and the
-    field models (:mod:`fieldfit`) are fitted to them, and scene layers
+    field models (:mod:`motion.fields`) are fitted to them, and scene layers
     (:mod:`layers`) split off the points the best global model leaves; where
     there are any, every frame's models are fitted again without their
     points, whatever the model. With ``model="auto"`` the burst gets the model with the lowest :func:`gric`

@@ -1,13 +1,13 @@
-"""Fitting the field models of :class:`trajectory.FieldWarp` to tracked points.
+"""Fitting the field models of :class:`geometry.warps.FieldWarp` to tracked points.
 
-Frame t sees reference point p at ``q = H p + r(q)`` (see :mod:`trajectory`),
+Frame t sees reference point p at ``q = H p + r(q)`` (see :mod:`geometry.warps`),
 so a tracked pair ``(src, dst)`` gives ``r(dst) = dst - H src``: ``H`` and the field's coefficients are fitted
 together (penalised Gauss-Newton, :func:`joint_fit`).
 
 The points are accurate to a few hundredths of a pixel; dense optical flow
 is not (DIS flow of these frames errs by 0.1-1 px per pixel, measured), so
 the field is fitted to the points and flow only checks it afterwards
-(:func:`motion.moving_masks`). Cells with few points are held smooth by a
+(:func:`motion.masks.moving_masks`). Cells with few points are held smooth by a
 P-spline penalty (squared second differences of the coefficients) whose
 weight generalised cross-validation picks, so a real wobble is not damped
 and an unconstrained corner does not swing.

@@ -10,7 +10,7 @@ motion does not explain and splits off the layers they support (sequential
 robust fits, a point joining a layer only if it follows it in every frame);
 :func:`label_pixels` then gives every pixel the layer whose warp best
 predicts its neighbourhood, and none where it is occluded in one of the two
-frames. The result is :class:`trajectory.LayeredWarp`.
+frames. The result is :class:`geometry.warps.LayeredWarp`.
 """
 
 from __future__ import annotations
@@ -231,7 +231,7 @@ def label_pixels(smooth: list, layers: np.ndarray, members: np.ndarray, points: 
         The reference: the layer whose warps best predict the pixel's
         window, on average over the other frames that see it. Frame t: the
         layer whose warp best predicts it from the reference, among those
-        the reference sees there; :data:`trajectory.NO_LAYER` where none
+        the reference sees there; :data:`geometry.warps.NO_LAYER` where none
         does, or only badly.
     """
     import cv2
@@ -282,7 +282,7 @@ def label_pixels(smooth: list, layers: np.ndarray, members: np.ndarray, points: 
 
 def _decide(cost: np.ndarray) -> np.ndarray:
     """Per pixel, the layer of least ``cost`` ``(L, h, w)`` where that is clear; elsewhere the layer
-    clearly nearest, or :data:`trajectory.NO_LAYER`.
+    clearly nearest, or :data:`geometry.warps.NO_LAYER`.
 
     Clear: the runner-up costs at least twice as much, and more than the
     best costs typically (the noise). Where layers cost alike -- flat
@@ -315,7 +315,7 @@ def _decide(cost: np.ndarray) -> np.ndarray:
 
 
 def _apart(labels: np.ndarray, margin: int) -> np.ndarray:
-    """``labels`` with :data:`trajectory.NO_LAYER` within ``margin`` px of another layer's pixels."""
+    """``labels`` with :data:`geometry.warps.NO_LAYER` within ``margin`` px of another layer's pixels."""
     import cv2
 
     out = labels.copy()
@@ -330,7 +330,7 @@ def _apart(labels: np.ndarray, margin: int) -> np.ndarray:
 
 
 def _connected(labels: np.ndarray, members: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """``labels`` with :data:`trajectory.NO_LAYER` on every patch of a secondary layer that holds none of
+    """``labels`` with :data:`geometry.warps.NO_LAYER` on every patch of a secondary layer that holds none of
     its tracked points: a surface is where its points are, and a patch elsewhere that its warp happens
     to fit (a smooth area, an edge along the motion) is not it."""
     import cv2

@@ -57,7 +57,7 @@ def reduced_smooth(frames: np.ndarray, factor: int, exposures=None) -> tuple[lis
 def moving_masks(frames: np.ndarray, motion, *, factor: int | None = None, exposures=None) -> np.ndarray:
     """Pixels of each frame (in its own coordinates) that do not follow the estimated motion.
 
-    ``motion`` is a warp of :mod:`trajectory` or ``(F, 3, 3)`` homographies.
+    ``motion`` is a warp of :mod:`geometry.warps` or ``(F, 3, 3)`` homographies.
     Frame t (t >= 1) is compared with the reference: DIS flow from t to the
     reference against the motion's prediction, and the smoothed brightness of
     the two. The reference's own mask is the union of its comparisons with
@@ -92,7 +92,7 @@ def moving_masks(frames: np.ndarray, motion, *, factor: int | None = None, expos
         diff /= np.maximum(smooth[a], MASK_FLOOR * float(np.median(smooth[a][::2, ::2])))  # relative, as the FPN
         sigma = MAD_TO_SIGMA * float(np.median(diff[::2, ::2]))  # a robust spread: a quarter of the pixels suffice
         # a pixel frame b does not see (outside it, or hidden in it under a layered warp:
-        # trajectory.NOWHERE) is compared with nothing, so it departs from nothing
+        # geometry.warps.NOWHERE) is compared with nothing, so it departs from nothing
         x, y = where[..., 0], where[..., 1]
         seen = (x >= 0) & (x <= size[0] - 1) & (y >= 0) & (y <= size[1] - 1)
         off = flow + grid - where  # the flow's end point against the motion's

@@ -135,7 +135,7 @@ def residual_bound_percent(truth: Truth, mask: np.ndarray, n_frames: int) -> flo
 
 def simulate_to(out_dir: Path, *, fmt: str, overwrite: bool = False, scene: str | Path = "procedural",
                 parameters: dict | None = None, **burst_options) -> tuple[list[Path], OutputPlan]:
-    """Simulate a burst (see :func:`simulate.simulate_burst`) and save it, all or nothing; return the
+    """Simulate a burst (see :func:`sim.simulate.simulate_burst`) and save it, all or nothing; return the
     frames written and the output plan.
 
     ``scene`` is a built-in scene's name or the path of an image.

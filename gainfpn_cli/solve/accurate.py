@@ -4,7 +4,7 @@ solve that removes what limits the published form (docs/method.md section 5).
 Every frame ``s`` anchors comparisons with every other frame ``t``: pixel
 ``q`` of frame ``s`` sees the scene point that frame ``t`` sees at
 ``M_st q`` (``M_st = H_t H_s^-1`` for global motion, a map for a field
-model: :mod:`trajectory`), so brightness constancy of the corrected frames
+model: :mod:`geometry.warps`), so brightness constancy of the corrected frames
 reads
 
     k(q) i_s(q)  =  sum_c w_c k(c) i_t(c)                              (*)

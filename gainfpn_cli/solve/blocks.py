@@ -4,7 +4,7 @@ Frame 0 is tiled into non-overlapping ``block_size`` squares (edge blocks are
 smaller). For each block, every trajectory ``p -> positions[t, p]`` gives one
 residual row of paper eq. 5 with bilinear weights (Fig. 3); rows that leave
 the frame or touch a saturated or non-positive sample are dropped. Each
-block's constrained system is solved by :func:`solver._solve_gauged`, and the
+block's constrained system is solved by :func:`solve.kkt._solve_gauged`, and the
 ``B`` part of its ``k`` is kept. Strips of block rows are independent tasks
 for :func:`parallel.map_ordered`: every block is computed the same way
 whatever the strip or worker, so results are bit-identical for any worker

@@ -136,7 +136,7 @@ def select_model(k: np.ndarray, confidence: np.ndarray, *, force: str | None = N
     ----------
     k, confidence : ndarray, shape (H, W)
         The solver's per-pixel estimate and its confidence
-        (:func:`accurate.sigma_from_confidence` gives ``sigma_k`` back).
+        (:func:`solve.result.sigma_from_confidence` gives ``sigma_k`` back).
     force : str, optional
         One of :data:`MODELS` instead of the AIC choice.
     """

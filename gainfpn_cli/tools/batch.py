@@ -142,7 +142,13 @@ def stored_report(folder: Path, job: Job, cfg) -> Report | None:
         return None
     if dark is not None and not stamp(cfg.input.dark, digest=False).same_file(dark):
         return None
-    return report if report.config == config_dict(cfg) else None
+    return report if _settings(report.config) == _settings(config_dict(cfg)) else None
+
+
+def _settings(config: dict) -> dict:
+    """A config less what cannot change a result: the solver's process count (a cluster's bursts
+    solve on one, a batch here on solver.workers; the tiling and so the result do not depend on it)."""
+    return {**config, "solver": {k: v for k, v in config.get("solver", {}).items() if k != "workers"}}
 
 
 def run_burst(job: Job, out: str | os.PathLike, *, defaults: Defaults = Defaults(), overwrite: bool = False,
@@ -161,7 +167,7 @@ def run_burst(job: Job, out: str | os.PathLike, *, defaults: Defaults = Defaults
         cfg = job_config(job, defaults, solver_workers=solver_workers)
         report = None if overwrite else stored_report(folder, job, cfg)
         if report is not None:
-            return {**_row(job.name, report, report.timings["total_s"]), "earlier": True}
+            return {**_row(job.name, report, report.timings.get("total_s", 0.0)), "earlier": True}
         written = estimate(job.inputs, config=cfg).write(folder, overwrite=True)  # the batch's own folder
     except GainFPNError as exc:
         return {**_failed(job.name, str(exc)), "time_s": round(time.perf_counter() - t0, 2)}
