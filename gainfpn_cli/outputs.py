@@ -53,6 +53,10 @@ class Written:
     report: Report
 
 
+#: Header attribute of a gain map estimated on dark-subtracted frames: that dark frame's path and digest.
+ATTR_DARK = "gainfpn:dark"
+
+
 #: What ``estimate`` writes into its output folder (``--overwrite`` replaces these names only).
 ESTIMATE_OUTPUTS = ("gain_map.exr", "corrected", "preview.png", "config.used.yaml", "report.json")
 
@@ -103,10 +107,6 @@ def write_estimate(result: Estimate, burst: LoadedBurst, cfg: Config, out_dir: P
         report = result.report.with_timings(write_s=time.perf_counter() - t0)
         write_text(tmp / "report.json", json.dumps(report.to_json(), indent=1))
     return Written(plan, report)
-
-
-#: Header attribute of a gain map estimated on dark-subtracted frames: that dark frame's path and digest.
-ATTR_DARK = "gainfpn:dark"
 
 
 def _write_corrected(frame: Callable[[int], tuple[Path, np.ndarray]], count: int, k: np.ndarray, folder: Path, *,

@@ -104,24 +104,10 @@ def load_manifest(path: str | os.PathLike) -> list[Job]:
 
 def job_config(job: Job, defaults: Defaults = Defaults(), *, solver_workers: int | None = None):
     """The burst's effective config: defaults < ``--preset`` < ``-c`` < the burst's own config."""
-    from ..config import load_config, parse_config
+    from ..config import load_config
 
-    cfg = load_config(defaults.config, preset=defaults.preset)
-    if job.config is not None:
-        try:
-            text = Path(job.config).read_text(encoding="utf-8")
-        except OSError as exc:
-            raise ConfigError(f"{job.config}: cannot read config: {exc.strerror or exc}") from None
-        cfg = parse_config(text, source=str(job.config), base=cfg)
-    if solver_workers is not None:
-        cfg = _with_workers(cfg, solver_workers)
-    return cfg
-
-
-def _with_workers(cfg, workers: int):
-    import dataclasses
-
-    return dataclasses.replace(cfg, solver=dataclasses.replace(cfg.solver, workers=workers))
+    base = load_config(defaults.config, preset=defaults.preset)
+    return load_config(job.config, base=base, overrides={"solver.workers": solver_workers})
 
 
 def stored_report(folder: Path, job: Job, cfg) -> Report | None:
