@@ -49,14 +49,12 @@ class OutputPlan:
         this command and of its dependents, and the names this run writes).
     untouched : tuple of str
         Names in ``out_dir`` that gainfpn did not write: never touched.
-    overwrite : bool
     """
 
     out_dir: Path
     command: str
     replace: frozenset
     untouched: tuple
-    overwrite: bool
 
 
 def read_manifest(out_dir: Path) -> dict[str, str]:
@@ -138,7 +136,7 @@ def prepare(out_dir: str | os.PathLike, *, command: str, names: Iterable[str] = 
     if out_dir.is_dir():
         untouched = tuple(sorted(p.name for p in out_dir.iterdir()
                                  if p.name != MANIFEST and p.name not in manifest and p.name not in names))
-    return OutputPlan(out_dir, command, frozenset(replace), untouched, overwrite)
+    return OutputPlan(out_dir, command, frozenset(replace), untouched)
 
 
 def _exists(path: Path) -> bool:
