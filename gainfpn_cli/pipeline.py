@@ -23,7 +23,7 @@ from .geometry.resample import positions as warp_positions
 from .motion.estimate import estimate_motion
 from .motion.exposure import relative_exposures, rough_exposures, significant
 from .motion.masks import moving_masks
-from .report import Holdout, Motion, Prnu, Report, status_of
+from .report import Exposure, FrameMotion, Holdout, Layer, Motion, PlaneReport, Prnu, Report, status_of
 from .solve.accurate import AccurateOptions, power_of_two_scale, solve_accurate
 from .solve.blocks import solve_paper
 from .solve.fpnmodel import select_model
@@ -191,11 +191,11 @@ def _estimate(burst: LoadedBurst, cfg: Config, solver: _Solver, progress: Progre
             confidence = np.zeros_like(confidence)
     sigma = sigma_from_confidence(confidence)
     # only the accurate solver's confidence is a calibrated standard error
-    calibrated = (confidence > 0).any() and all(p["method"] == "accurate" for p in plane_reports.values())
+    calibrated = (confidence > 0).any() and all(p.method == "accurate" for p in plane_reports.values())
     report = Report(
         status=status_of(holdout_report),
-        prnu_percent=Prnu.combined({name: p["input_fpn_percent"] for name, p in plane_reports.items()
-                                    if "input_fpn_percent" in p}),
+        prnu_percent=Prnu.combined({name: p.input_fpn_percent for name, p in plane_reports.items()
+                                    if p.input_fpn_percent is not None}),
         predicted_residual_percent=float(100 * np.median(sigma[confidence > 0])) if calibrated else None,
         holdout=holdout_report,
         estimated_percent=float(100 * (confidence > 0).mean()),
@@ -206,10 +206,10 @@ def _estimate(burst: LoadedBurst, cfg: Config, solver: _Solver, progress: Progre
         motion=Motion(
             model=motion.model,
             reason=motion.reason,
-            layers=motion.layers,
-            frames=[{"frame": burst.paths[order[i + 1]].name, **{k_: v for k_, v in f.items() if k_ != "gric"},
-                     "homography": frame_homography(motion.homographies[i + 1], S_motion)}
-                    for i, f in enumerate(motion.per_frame)],
+            layers=tuple(Layer(model, points) for model, points in motion.layers),
+            frames=tuple(FrameMotion(burst.paths[order[i + 1]].name, f.tracked, f.inliers, f.rms_px, f.displacement_px,
+                                     frame_homography(motion.homographies[i + 1], S_motion))
+                         for i, f in enumerate(motion.per_frame)),
             refine_rounds=cfg.motion.refine_rounds,
             moving_percent=moving,
         ),
@@ -270,18 +270,18 @@ RETRACK_EXPOSURE = 0.002
 ROUGH_EXPOSURE = 0.02
 
 
-def _exposures(motion_images, warp, burst, cfg) -> tuple[np.ndarray, dict]:
+def _exposures(motion_images, warp, burst, cfg) -> tuple[np.ndarray, Exposure]:
     """Each frame's exposure relative to the reference (:mod:`exposure`), measured on the motion
     images (a CFA's 2x2 cells: a clipped photosite lowers its cell, the median shrugs a few off)
     and kept where it differs from 1 significantly; all ones with ``input.exposure: fixed``. And
     what the report says of them."""
     if cfg.input.exposure == "fixed":
-        return np.ones(len(motion_images)), {"mode": "fixed"}
+        return np.ones(len(motion_images)), Exposure("fixed")
     measured, errors = relative_exposures(motion_images, warp, saturation=burst.saturation)
     used = significant(measured, errors)
-    return used, {"mode": "per-frame", "relative": [round(float(c), 6) for c in used],
-                  "measured": [round(float(c), 6) for c in measured],
-                  "log_standard_error": [float(e) if np.isfinite(e) else None for e in errors]}
+    return used, Exposure("per-frame", tuple(round(float(c), 6) for c in used),
+                          tuple(round(float(c), 6) for c in measured),
+                          tuple(float(e) if np.isfinite(e) else None for e in errors))
 
 
 def _grids(burst: LoadedBurst, frames: np.ndarray, method: str) -> list:
@@ -297,29 +297,29 @@ def _solve_planes(burst, frames, excluded, exposures, n_fit, in_frame, solver: _
     left_out = None if excluded is None else np.broadcast_to(excluded[:n_fit, ..., None], fit.shape)  # every channel
     solved = {}
     for grid in _grids(burst, frames, solver.method):
-        result, info = _solve_grid(grid.gather(fit), None if left_out is None else grid.gather(left_out),
-                                   in_frame.conjugate(grid.S), burst.saturation, solver, progress, grid.name,
-                                   exposures=exposures[:n_fit])
+        result = _solve_grid(grid.gather(fit), None if left_out is None else grid.gather(left_out),
+                             in_frame.conjugate(grid.S), burst.saturation, solver, progress, grid.name,
+                             exposures=exposures[:n_fit])
         grid.scatter(k, result.k)
         grid.scatter(confidence, result.confidence)
-        solved.update({name: {**info, "solved_on": grid.name} for name in grid.positions})
+        solved.update({name: PlaneReport(solver.method, grid.name, result.stats) for name in grid.positions})
     reports = {}
     for name, pick, _ in plane_views(burst.cfa, burst.channels):  # the gauge and the FPN model, plane by plane
-        info, structured = dict(solved[name]), False
+        report, structured = solved[name], False
         kp = pick(k)
         if solver.method == "accurate":
             model = select_model(kp, pick(confidence), force=solver.fpn_model)
-            info.update(fpn_model=model.chosen, fpn_model_aic=model.scores, input_fpn_percent=model.split)
+            report = dataclasses.replace(report, fpn_model=model.chosen, fpn_model_aic=model.scores, input_fpn_percent=model.split)
             kp, structured = model.k, model.chosen not in ("pixel", "none")
-        result = physical(GainResult(kp, pick(confidence), {}), solver.gain_range, structured)
+        result = physical(GainResult(kp, pick(confidence)), solver.gain_range, structured)
         pick(k)[...] = result.k
         pick(confidence)[...] = result.confidence
-        reports[name] = info
+        reports[name] = report
     return k, confidence, reports
 
 
 def _solve_grid(frames, excluded, motion, saturation, solver: _Solver, progress, name,
-                exposures=None) -> tuple[GainResult, dict]:
+                exposures=None) -> GainResult:
     update = progress(f"solve {name}", 0) if progress else None
     if solver.method == "paper":
         if excluded is not None:  # the published form takes zeroed pixels as missing
@@ -331,12 +331,10 @@ def _solve_grid(frames, excluded, motion, saturation, solver: _Solver, progress,
         region = (0, 0) + frames.shape[1:]
         positions = np.stack([warp_positions(motion.pair(0, t, region), frames.shape[1:])
                               for t in range(1, len(frames))])
-        result = solve_paper(frames, positions, block_size=solver.block_size, options=solver.paper,
-                             saturation=saturation, workers=solver.workers, progress=update, executor=solver.executor)
-        return result, {"method": "paper", **result.stats}
-    result = solve_accurate(frames, motion, options=solver.accurate, saturation=saturation, excluded=excluded,
-                            exposures=exposures, workers=solver.workers, progress=update, executor=solver.executor)
-    return result, {"method": "accurate", **result.stats}
+        return solve_paper(frames, positions, block_size=solver.block_size, options=solver.paper,
+                           saturation=saturation, workers=solver.workers, progress=update, executor=solver.executor)
+    return solve_accurate(frames, motion, options=solver.accurate, saturation=saturation, excluded=excluded,
+                          exposures=exposures, workers=solver.workers, progress=update, executor=solver.executor)
 
 
 def _versions() -> dict:

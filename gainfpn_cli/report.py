@@ -1,9 +1,7 @@
 """The report of an estimate: typed, and written as ``report.json`` by :meth:`Report.to_json`.
 
 Every stage that says something about an estimate (the summary line, ``--json``, the batch
-summary, the preview, ``evaluate``, the bench) reads these fields. Three are still plain data
-whose keys depend on the solver or the model: ``planes``, ``exposure`` and ``motion.frames``.
-Relative figures are in percent.
+summary, the preview, ``evaluate``, the bench) reads these fields. Relative figures are in percent.
 """
 
 from __future__ import annotations
@@ -13,6 +11,7 @@ from dataclasses import dataclass, field, replace
 
 from . import __version__
 from .files import FileStamp
+from .solve.result import AccurateStats, PaperStats, stats_from_json
 
 #: The parts of the gain nonuniformity EMVA 1288 separates.
 PRNU_PARTS = ("pixel", "column", "row")
@@ -71,17 +70,106 @@ class Holdout:
 
 
 @dataclass(frozen=True)
+class FrameMotion:
+    """One frame's motion fit: corners tracked from the reference and the inliers kept, the
+    residual under the chosen model on them (None where none was kept), the frame's RMS
+    displacement from the reference, and ``H_t_ref`` in frame pixels (row-major 3x3)."""
+
+    frame: str
+    tracked: int
+    inliers: int
+    rms_px: float | None
+    displacement_px: float
+    homography: list
+
+
+@dataclass(frozen=True)
+class Layer:
+    """A scene layer besides the dominant one: its motion model and the points that follow it."""
+
+    model: str
+    points: int
+
+
+@dataclass(frozen=True)
 class Motion:
-    """The burst's motion: the chosen model and why, each frame's fit (``frames``: name, point
-    counts, residual, displacement and ``H_t_ref`` in frame pixels), the scene layers besides the
-    dominant one, and the percentage of each frame's pixels left out as moving."""
+    """The burst's motion: the chosen model and why, each frame's fit, the scene layers besides
+    the dominant one, and the percentage of each frame's pixels left out as moving."""
 
     model: str
     reason: str = ""
-    layers: list = field(default_factory=list)
-    frames: list = field(default_factory=list)
+    layers: tuple[Layer, ...] = ()
+    frames: tuple[FrameMotion, ...] = ()
     refine_rounds: int = 0
     moving_percent: list | None = None
+
+    def to_json(self) -> dict:
+        return {**vars(self), "layers": [vars(x).copy() for x in self.layers],
+                "frames": [vars(f).copy() for f in self.frames]}
+
+    @classmethod
+    def from_json(cls, data: dict) -> "Motion":
+        return cls(**{**data, "layers": tuple(Layer(**x) for x in data["layers"]),
+                      "frames": tuple(FrameMotion(**f) for f in data["frames"])})
+
+
+@dataclass(frozen=True)
+class Exposure:
+    """Each frame's exposure relative to the reference's, reference first: ``fixed`` (taken as
+    equal: no figures) or ``per-frame``, where ``relative`` is what was divided out (1 where the
+    measured one did not differ significantly), with the ``measured`` values and the standard
+    error of their logarithm (None where unmeasurable)."""
+
+    mode: str = "fixed"
+    relative: tuple[float, ...] | None = None
+    measured: tuple[float, ...] | None = None
+    log_standard_error: tuple[float | None, ...] | None = None
+
+    @property
+    def spread_percent(self) -> float:
+        """The largest exposure difference (%) from the reference that was divided out; 0 if none."""
+        return 100.0 * max(abs(c - 1.0) for c in self.relative or [1.0])
+
+    def to_json(self) -> dict:
+        if self.mode == "fixed":
+            return {"mode": self.mode}
+        return {"mode": self.mode, "relative": list(self.relative), "measured": list(self.measured),
+                "log_standard_error": list(self.log_standard_error)}
+
+    @classmethod
+    def from_json(cls, data: dict) -> "Exposure":
+        return cls(data["mode"], *(None if data.get(key) is None else tuple(data[key])
+                                   for key in ("relative", "measured", "log_standard_error")))
+
+
+@dataclass(frozen=True)
+class PlaneReport:
+    """How one plane (a CFA colour, or Y) was solved: the solver (``paper`` / ``accurate``), the
+    grid it was solved on (a CFA's two greens together for the accurate solver), the solver's
+    counts, and for the accurate solver the FPN model chosen, every model's AIC and the input
+    FPN split into EMVA 1288's parts (percent)."""
+
+    method: str
+    solved_on: str
+    solver: PaperStats | AccurateStats
+    fpn_model: str | None = None
+    fpn_model_aic: dict | None = None
+    input_fpn_percent: dict | None = None
+
+    def to_json(self) -> dict:
+        """Flat, as ``report.json`` holds it: the method, the solver's counts, then the rest."""
+        data = {"method": self.method, **vars(self.solver), "solved_on": self.solved_on}
+        if isinstance(self.solver, AccurateStats):
+            data["gmres_iterations"] = list(self.solver.gmres_iterations)
+        if self.fpn_model is not None:
+            data.update(fpn_model=self.fpn_model, fpn_model_aic=self.fpn_model_aic,
+                        input_fpn_percent=self.input_fpn_percent)
+        return data
+
+    @classmethod
+    def from_json(cls, data: dict) -> "PlaneReport":
+        return cls(data["method"], data["solved_on"], stats_from_json(data["method"], data),
+                   data.get("fpn_model"), data.get("fpn_model_aic"), data.get("input_fpn_percent"))
 
 
 @dataclass(frozen=True)
@@ -98,9 +186,8 @@ class Report:
     dark: FileStamp | None = None
     white_level_dn: float | None = None
     reference: str = ""
-    # per frame, reference first: its exposure relative to the reference's ("relative", divided out)
-    exposure: dict = field(default_factory=dict)
-    planes: dict = field(default_factory=dict)  # plane name -> the solver's and the FPN model's figures
+    exposure: Exposure = field(default_factory=Exposure)
+    planes: dict = field(default_factory=dict)  # plane name -> PlaneReport
     config: dict = field(default_factory=dict)
     timings: dict = field(default_factory=dict)  # seconds per stage
     versions: dict = field(default_factory=dict)
@@ -110,12 +197,12 @@ class Report:
     @property
     def fpn_models(self) -> str:
         """The FPN models chosen over the planes (the solver's method where it has none)."""
-        return "/".join(sorted({p.get("fpn_model", p["method"]) for p in self.planes.values()}))
+        return "/".join(sorted({p.fpn_model or p.method for p in self.planes.values()}))
 
     @property
     def exposure_spread_percent(self) -> float:
         """The largest exposure difference (%) from the reference that was divided out; 0 if none."""
-        return 100.0 * max(abs(c - 1.0) for c in self.exposure.get("relative", [1.0]))
+        return self.exposure.spread_percent
 
     def with_timings(self, **seconds: float) -> "Report":
         """This report with more stages' times, and ``total_s`` their sum."""
@@ -135,9 +222,9 @@ class Report:
             "dark": None if self.dark is None else self.dark.to_json(),
             "white_level_dn": self.white_level_dn,
             "reference": self.reference,
-            "motion": vars(self.motion).copy(),
-            "exposure": self.exposure,
-            "planes": self.planes,
+            "motion": self.motion.to_json(),
+            "exposure": self.exposure.to_json(),
+            "planes": {name: p.to_json() for name, p in self.planes.items()},
             "config": self.config,
             "timings": self.timings,
             "versions": self.versions,
@@ -150,7 +237,7 @@ class Report:
         holdout = data["holdout"]
         return cls(
             status=data["status"],
-            motion=Motion(**data["motion"]),
+            motion=Motion.from_json(data["motion"]),
             prnu_percent=Prnu.from_json(data["prnu_percent"]),
             predicted_residual_percent=data["predicted_residual_percent"],
             holdout=None if holdout is None else Holdout(**holdout),
@@ -159,8 +246,8 @@ class Report:
             dark=None if data["dark"] is None else FileStamp(**data["dark"]),
             white_level_dn=data["white_level_dn"],
             reference=data["reference"],
-            exposure=data["exposure"],
-            planes=data["planes"],
+            exposure=Exposure.from_json(data["exposure"]),
+            planes={name: PlaneReport.from_json(p) for name, p in data["planes"].items()},
             config=data["config"],
             timings=data["timings"],
             versions=data["versions"],

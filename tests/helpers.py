@@ -40,7 +40,7 @@ def _assert_sane(result, cfg):
     assert np.isfinite(k).all() and np.isfinite(confidence).all()
     assert ((confidence >= 0) & (confidence <= 1)).all()
     est = confidence > 0
-    models = {p.get("fpn_model", "pixel") for p in result.report.planes.values()}
+    models = {p.fpn_model or "pixel" for p in result.report.planes.values()}
     if models <= {"pixel", "none"}:  # a column / row model also knows the unestimated pixels' gains
         assert (k[~est] == 1).all()
     if est.any():

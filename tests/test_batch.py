@@ -172,7 +172,7 @@ def test_the_solver_runs_its_tiles_on_dask_bit_identically(bursts, cluster):
     burst = load_burst([bursts / "b1"], cfg)
     local = estimate(burst, cfg)
     remote = estimate(burst, cfg, executor=DaskExecutor(cluster))
-    assert local.report.planes["Y"]["tiles"] > 4
+    assert local.report.planes["Y"].solver.tiles > 4
     assert np.array_equal(local.k, remote.k) and np.array_equal(local.confidence, remote.confidence)
 
 

@@ -77,7 +77,7 @@ def test_static_frames_are_left_out_and_counted():
     ys, xs = np.mgrid[0:30, 0:40]
     pos[1] = np.stack([xs, ys], axis=-1)  # frame 2 did not move
     result = solve_paper(frames, pos, workers=1)
-    assert result.stats["static_frames"] == 1
+    assert result.stats.static_frames == 1
     _check_sane(result)
 
 
@@ -102,7 +102,7 @@ def test_any_block_size_is_safe(block_size):
 def test_block_as_large_as_the_frame():
     burst, frames = _flat_burst(shape=(24, 28))
     result = solve_paper(frames, _positions(burst), block_size=64, workers=1)
-    assert result.stats["blocks"] == 1
+    assert result.stats.blocks == 1
     _check_sane(result)
     est = result.confidence > 0
     # one block, one gauge: the same product-of-averages bound as above
@@ -117,7 +117,7 @@ def test_sparse_path_gives_the_dense_answer(monkeypatch):
     dense = solve_paper(frames, _positions(burst), block_size=64, options=options, workers=1)
     monkeypatch.setattr("gainfpn_cli.solve.blocks.DENSE_MAX", 100)
     sparse = solve_paper(frames, _positions(burst), block_size=64, options=options, workers=1)
-    assert dense.stats["regularised"] == sparse.stats["regularised"] == 0
+    assert dense.stats.regularised == sparse.stats.regularised == 0
     np.testing.assert_allclose(sparse.k, dense.k, rtol=1e-7)
 
 
@@ -140,7 +140,7 @@ def test_trajectories_leaving_the_frame():
     _check_sane(result)
     assert np.all(result.confidence[:, 20:] == 0) and np.all(result.k[:, 20:] == 1.0)
     assert np.all(result.confidence[:15, :15] > 0)
-    assert result.stats["unestimated_pixels"] >= 20 * 10
+    assert result.stats.unestimated_pixels >= 20 * 10
 
 
 def test_saturated_and_zero_pixels_are_excluded():
@@ -152,13 +152,13 @@ def test_saturated_and_zero_pixels_are_excluded():
     _check_sane(result)
     assert np.all(result.confidence[:8] == 0) and np.all(result.k[:8] == 1.0)
     clean = solve_paper(burst.frames.astype(np.float32), _positions(burst), workers=1, saturation=burst.saturation)
-    assert result.stats["rows"] < clean.stats["rows"]
+    assert result.stats.rows < clean.stats.rows
 
 
 def test_nothing_usable_leaves_everything_unestimated():
     burst, frames = _flat_burst()
     result = solve_paper(np.zeros_like(frames), _positions(burst), workers=1)
-    assert result.stats["unestimated_pixels"] == frames[0].size
+    assert result.stats.unestimated_pixels == frames[0].size
     np.testing.assert_array_equal(result.k, 1.0)
 
 

@@ -183,7 +183,7 @@ def test_sixteen_bit_full_scale_dng(tmp_path):
     _assert_sane(result, cfg)
     # report.json's homographies are in photosite coordinates, as the truth's:
     # measured worst frame 0.052 px (displacements 1.5-4.6 px)
-    reported = [np.array(f["homography"]) for f in result.report.motion.frames]
+    reported = [np.array(f.homography) for f in result.report.motion.frames]
     assert max(trajectory_rms(H, burst.homographies[t], burst.gain.shape) for t, H in enumerate(reported, 1)) < 0.1
 
 

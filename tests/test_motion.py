@@ -38,7 +38,7 @@ DRIFT = Shake(translation_px=1.0, rotation_deg=0.2, drift_px=25)
 
 def _reported_worst(burst, report):
     """Worst frame's trajectory error of the homographies report.json gives (frame pixels)."""
-    Hs = [np.array(f["homography"]) for f in report.motion.frames]
+    Hs = [np.array(f.homography) for f in report.motion.frames]
     return max(trajectory_rms(H, burst.homographies[t], SHAPE) for t, H in enumerate(Hs, start=1))
 
 

@@ -29,6 +29,19 @@ MODELS, ALL_MODELS = list(_NAMES), list(_ALL_NAMES)
 
 
 @dataclass(frozen=True)
+class FrameFit:
+    """One frame's fit: corners tracked from the reference and the inliers kept, the residual
+    under the chosen model on them (None where it kept none), the frame's RMS displacement from
+    the reference, and each model's GRIC (lower is better)."""
+
+    tracked: int
+    inliers: int
+    rms_px: float | None
+    displacement_px: float
+    gric: dict
+
+
+@dataclass(frozen=True)
 class MotionResult:
     """The motion of every frame relative to the reference.
 
@@ -39,15 +52,13 @@ class MotionResult:
         a field model, its homography part.
     model : str
         The chosen model (a key of MODELS).
-    per_frame : list of dict
-        For each frame: ``tracked`` and ``inliers`` point counts, ``rms_px``
-        (residual under the chosen model on the points it keeps) and
-        ``gric`` of each model.
+    per_frame : list of FrameFit
+        Every frame's but the reference's.
     reason : str
         Why that model was chosen.
     warp : GlobalWarp, FieldWarp or LayeredWarp
         The motion as maps between frames.
-    layers : list of dict
+    layers : list of tuple
         For the layers model: each secondary layer's model and point count.
     """
 
@@ -138,17 +149,16 @@ def estimate_motion(
             info["rms"]["layers"] = float(np.sqrt(np.mean(kept**2))) if kept.size else None
     else:
         warp = _assemble(fits, chosen, shape)
-    for t, info in enumerate(per_frame, start=1):
-        info["rms_px"] = info.pop("rms")[chosen]
-        info["displacement_px"] = trajectory_rms(warp.homographies[t], np.eye(3), shape, step=8)
-        info.pop("sigma2")
-    if max(f["displacement_px"] for f in per_frame) < STILL_PX:
+    per_frame = [FrameFit(info["tracked"], info["inliers"], info["rms"][chosen],
+                          trajectory_rms(warp.homographies[t], np.eye(3), shape, step=8), info["gric"])
+                 for t, info in enumerate(per_frame, start=1)]
+    if max(f.displacement_px for f in per_frame) < STILL_PX:
         raise EstimationError(
             f"no motion: every frame is within {STILL_PX} px of the reference, so the gain cannot be "
             "estimated (pan or shake the camera during the burst; a scene with no texture of its own looks the same)"
         )
     described = [] if chosen != "layers" else [
-        {"model": m, "points": int((layers.members == i + 1).sum())} for i, m in enumerate(layers.models)]
+        (m, int((layers.members == i + 1).sum())) for i, m in enumerate(layers.models)]
     return MotionResult(warp.homographies, chosen, per_frame, reason, warp, described)
 
 

@@ -41,7 +41,7 @@ from ..geometry.warps import STILL_PX, FieldWarp, GlobalWarp, as_warp, trajector
 from ..metrics import MAD_TO_SIGMA
 from ..parallel import map_ordered
 from .phase import phase_weighted
-from .result import CONFIDENCE_SCALE, GainResult, out_of_range, regauge
+from .result import CONFIDENCE_SCALE, AccurateStats, GainResult, out_of_range, regauge
 
 
 @dataclass(frozen=True)
@@ -207,13 +207,13 @@ def solve_accurate(
     k[~estimated] = 1.0
     regauge(k, estimated)
     k[~estimated] = 1.0
-    stats = {
-        "tiles": len(tiles),
-        "gmres_iterations": iterations,
-        "unestimated_pixels": int((~estimated).sum()),
-        "out_of_range_pixels": int(absurd.sum()),
-        "median_confidence": float(np.median(confidence[estimated])),
-    }
+    stats = AccurateStats(
+        tiles=len(tiles),
+        gmres_iterations=tuple(iterations),
+        unestimated_pixels=int((~estimated).sum()),
+        out_of_range_pixels=int(absurd.sum()),
+        median_confidence=float(np.median(confidence[estimated])),
+    )
     return GainResult(k.astype(np.float32), confidence.astype(np.float32), stats)
 
 

@@ -22,7 +22,7 @@ from ..errors import EstimationError
 from ..geometry.warps import STILL_PX
 from ..parallel import map_ordered
 from .kkt import DENSE_MAX, OK, REGULARISED, UNESTIMATED, SolveOptions, _solve_gauged
-from .result import GainResult, regauge
+from .result import GainResult, PaperStats, regauge
 
 
 @dataclass(frozen=True)
@@ -97,14 +97,14 @@ def solve_paper(
     k[~estimated] = 1.0
     confidence = np.select([status == OK, status == REGULARISED], [1.0, 0.5], 0.0)
     block_status = status[::block_size, ::block_size]
-    stats = {
-        "blocks": int(block_status.size),
-        "regularised": int((block_status == REGULARISED).sum()),
-        "unestimated_blocks": int((block_status == UNESTIMATED).sum()),
-        "unestimated_pixels": int((~estimated).sum()),
-        "static_frames": int((~moving).sum()),
-        "rows": int(rows),
-    }
+    stats = PaperStats(
+        blocks=int(block_status.size),
+        regularised=int((block_status == REGULARISED).sum()),
+        unestimated_blocks=int((block_status == UNESTIMATED).sum()),
+        unestimated_pixels=int((~estimated).sum()),
+        static_frames=int((~moving).sum()),
+        rows=int(rows),
+    )
     return GainResult(k.astype(np.float32), confidence.astype(np.float32), stats)
 
 

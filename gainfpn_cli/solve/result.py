@@ -8,7 +8,7 @@ none, gives 1 (solved cleanly), 0.5 (extra regularisation) or 0. Either way 0 is
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, fields
 
 import numpy as np
 
@@ -23,16 +23,54 @@ class GainResult:
         Correction (multiply to correct); 1.0 where unestimated; mean 1 over
         estimated pixels.
     confidence : ndarray of float32, shape (H, W)
-        1 where solved cleanly, 0.5 where the block needed extra
-        regularisation, 0 where unestimated.
-    stats : dict
-        ``blocks``, ``regularised``, ``unestimated_blocks``,
-        ``unestimated_pixels``, ``static_frames``, ``rows``.
+        See the module: 0 where unestimated.
+    stats : PaperStats or AccurateStats or None
+        What the solver counted on the way.
     """
 
     k: np.ndarray
     confidence: np.ndarray
-    stats: dict = field(default_factory=dict)
+    stats: PaperStats | AccurateStats | None = None
+
+
+@dataclass(frozen=True)
+class PaperStats:
+    """The paper's block solver's counts: blocks solved, those that needed extra regularisation
+    and those left unestimated, unestimated pixels, frames that did not move (left out), and
+    constraint rows over all blocks."""
+
+    blocks: int
+    regularised: int
+    unestimated_blocks: int
+    unestimated_pixels: int
+    static_frames: int
+    rows: int
+
+    method = "paper"
+
+
+@dataclass(frozen=True)
+class AccurateStats:
+    """The accurate solver's counts: tiles, each tile's GMRES iterations, unestimated pixels
+    (of which ``out_of_range_pixels`` had a k outside the gain range) and the median confidence
+    of the estimated ones."""
+
+    tiles: int
+    gmres_iterations: tuple[int, ...]
+    unestimated_pixels: int
+    out_of_range_pixels: int
+    median_confidence: float
+
+    method = "accurate"
+
+
+def stats_from_json(method: str, data: dict) -> PaperStats | AccurateStats:
+    """The stats of ``method`` from a dict holding (at least) their fields."""
+    cls = {"paper": PaperStats, "accurate": AccurateStats}[method]
+    values = {f.name: data[f.name] for f in fields(cls)}
+    if cls is AccurateStats:
+        values["gmres_iterations"] = tuple(values["gmres_iterations"])
+    return cls(**values)
 
 
 #: Predicted standard error of k at which confidence is 0.5.
