@@ -179,13 +179,14 @@ def test_the_solver_runs_its_tiles_on_dask_bit_identically(bursts, cluster):
 def test_the_summary_gives_the_largest_exposure_difference_divided_out():
     import dataclasses
 
-    from gainfpn_cli.report import Motion, Prnu, Report
+    from gainfpn_cli.report import Exposure, Motion, PlaneReport, Prnu, Report
+    from gainfpn_cli.solve.result import AccurateStats
     from gainfpn_cli.tools.batch import _row
 
-    report = Report(status="unchecked", motion=Motion("affine"), predicted_residual_percent=0.6,
-                    planes={"Y": {"method": "accurate", "fpn_model": "pixel", "input_fpn_percent": {"pixel": 5.0}}},
+    plane = PlaneReport("accurate", "Y", AccurateStats(1, (10,), 0, 0, 0.8), "pixel", {}, {"pixel": 5.0})
+    report = Report(status="unchecked", motion=Motion("affine"), predicted_residual_percent=0.6, planes={"Y": plane},
                     prnu_percent=Prnu.of({"pixel": 5.0, "column": 0.0, "row": 0.0}),
-                    exposure={"mode": "per-frame", "relative": [1.0, 1.05, 0.97], "measured": [1.0, 1.05, 0.97]})
+                    exposure=Exposure("per-frame", (1.0, 1.05, 0.97), (1.0, 1.05, 0.97), (None, 0.01, 0.01)))
     assert _row("x", report, 1.0)["exposure_spread_percent"] == 5.0
-    report = dataclasses.replace(report, exposure={"mode": "fixed"})  # one exposure: nothing divided out
+    report = dataclasses.replace(report, exposure=Exposure("fixed"))  # one exposure: nothing divided out
     assert _row("x", report, 1.0)["exposure_spread_percent"] == 0.0

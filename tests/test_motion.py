@@ -304,7 +304,7 @@ def test_field_models_are_not_chosen_for_a_plain_shake():
         burst = simulate_burst(shape=SHAPE, n_frames=6, seed=seed, scene="dead-leaves")
         result = estimate_motion(burst.frames.astype(np.float32))
         assert result.model in ("translation", "affine", "homography"), result.reason
-        assert {"rolling", "mesh"} <= set(result.per_frame[0]["gric"])
+        assert {"rolling", "mesh"} <= set(result.per_frame[0].gric)
 
 
 def _layer_errors(burst, result):

@@ -12,9 +12,11 @@ from gainfpn_cli.config import Config, load_config
 from gainfpn_cli.outdir import MANIFEST
 from gainfpn_cli.outputs import write_estimate
 from gainfpn_cli.pipeline import estimate, load_burst
+from gainfpn_cli.report import PlaneReport
 from gainfpn_cli.sim.motion import Shake
 from gainfpn_cli.sim.simulate import simulate_burst
 from gainfpn_cli.sim.truth import save_burst
+from gainfpn_cli.solve.result import PaperStats
 
 
 @pytest.fixture(scope="module")
@@ -89,7 +91,7 @@ def test_holdout_rejects_an_estimate_that_does_not_help(exr_burst, monkeypatch):
 
     def harmful(burst_, frames, excluded, exposures, n_fit, H, cfg_, progress):
         k = 1 + 0.1 * np.random.default_rng(0).standard_normal(frames.shape[1:])
-        return k, np.ones(frames.shape[1:]), {"Y": {"method": "harmful"}}
+        return k, np.ones(frames.shape[1:]), {"Y": PlaneReport("harmful", "Y", PaperStats(1, 0, 0, 0, 0, 0))}
 
     monkeypatch.setattr(pipeline, "_solve_planes", harmful)
     result = estimate(burst, cfg)

@@ -7,10 +7,11 @@ import numpy as np
 import pytest
 
 from gainfpn_cli.preview import PREVIEW_PX, UNESTIMATED, shown, write_preview
-from gainfpn_cli.report import Holdout, Motion, Prnu, Report
+from gainfpn_cli.report import Holdout, Motion, PlaneReport, Prnu, Report
+from gainfpn_cli.solve.result import AccurateStats
 
 REPORT = Report(status="accepted", motion=Motion("affine"), inputs=("a", "b", "c", "d"),
-                planes={"Y": {"method": "accurate", "fpn_model": "pixel"}},
+                planes={"Y": PlaneReport("accurate", "Y", AccurateStats(1, (10,), 0, 0, 0.8), "pixel")},
                 prnu_percent=Prnu.of({"pixel": 4.9, "column": 1.0, "row": 0.1}), predicted_residual_percent=0.5,
                 holdout=Holdout("d", 0.2, True))
 
