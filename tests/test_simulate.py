@@ -191,3 +191,47 @@ def test_wave_truth_positions_match_the_rendered_frames(shake):
     plain = simulate_burst(shape=shape, n_frames=3, seed=4, scene="procedural")
     assert plain.waves is None
     np.testing.assert_array_equal(plain.positions(1), positions_from_homography(plain.homographies[1], shape))
+
+
+def test_defects_are_drawn_by_kind_and_change_no_healthy_photosite():
+    from gainfpn_cli.sim.simulate import DEFECT_SHARES, HOT_OFFSET_NOISE
+    from gainfpn_cli.solve.defects import DEAD, HOT, KINDS, STUCK
+
+    sensor = PRESETS["raw12"]
+    clean = simulate_burst(shape=(120, 160), n_frames=4, sensor=sensor, seed=3)
+    burst = simulate_burst(shape=(120, 160), n_frames=4, sensor=sensor, seed=3, defects=0.01)
+    assert clean.defects is None
+    counts = {kind: int((burst.defects == code).sum()) for kind, code in KINDS.items()}
+    assert counts == {"hot": 134, "dead": 29, "stuck": 29, "noisy": 0}  # 192 = 1 % in DEFECT_SHARES
+    assert counts["hot"] == round(DEFECT_SHARES["hot"] * 192)
+    healthy = burst.defects == 0
+    np.testing.assert_array_equal(burst.frames[:, healthy], clean.frames[:, healthy])
+    np.testing.assert_array_equal(burst.gain, clean.gain)
+    stuck = burst.frames[:, burst.defects == STUCK].astype(int)
+    assert np.all(stuck == stuck[0])  # one reading in every frame
+    dead = burst.frames[:, burst.defects == DEAD].astype(float) - sensor.black_level
+    assert np.abs(dead).max() <= 5 * sensor.read_noise_e * sensor.dn_per_e + 1  # no light: read noise only
+    # hot: an offset of 5-50x the reference frame's noise, on top of the clean reading
+    hot = burst.defects == HOT
+    excess = (burst.frames[0, hot].astype(float) - clean.frames[0, hot]) / sensor.dn_per_e
+    noise = np.sqrt(clean.gain[hot] * clean.ideal[0, hot] / sensor.dn_per_e + sensor.read_noise_e**2)
+    ratio = excess / noise
+    low, high = HOT_OFFSET_NOISE
+    assert np.median(ratio) == pytest.approx(np.sqrt(low * high), rel=0.3)  # log-uniform: median at the geometric mean
+    assert np.quantile(ratio, 0.05) > 0.8 * low
+
+
+def test_simulate_writes_the_defects_beside_the_truth(tmp_path):
+    from click.testing import CliRunner
+
+    from gainfpn_cli.cli import main
+
+    result = CliRunner().invoke(main, ["simulate", str(tmp_path / "d"), "--size", "64x48", "--frames", "3",
+                                       "--defects", "0.01", "-q"])
+    assert result.exit_code == 0, result.output
+    truth = load_truth(tmp_path / "d")
+    burst = simulate_burst(shape=(48, 64), n_frames=3, seed=0, defects=0.01)
+    np.testing.assert_array_equal(truth.defects, burst.defects)
+    assert json.loads((tmp_path / "d" / "truth" / "simulation.json").read_text())["defects"] == 0.01
+    CliRunner().invoke(main, ["simulate", str(tmp_path / "c"), "--size", "64x48", "--frames", "3", "-q"])
+    assert load_truth(tmp_path / "c").defects is None

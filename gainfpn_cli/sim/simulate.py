@@ -9,9 +9,13 @@ turns light into counts:
     electrons ~ Poisson(a * e_ideal) + Normal(0, read_noise)
     counts    = round(clip(electrons, 0, full_well) * dn_per_e) + black
 
-with the gain ``a`` = pixel x column x even/odd-row components. Every random
-source is its own child of one ``SeedSequence``: changing the noise level
-does not change the scene, motion or gains.
+with the gain ``a`` = pixel x column x even/odd-row components. Defective
+photosites (``defects``) are drawn in :data:`DEFECT_SHARES`: a hot one
+collects a dark-current offset on top (log-uniform in :data:`HOT_OFFSET_NOISE`
+times its temporal noise in the reference frame), a dead one no light, a
+stuck one reads one count in every frame. Every random source is its own
+child of one ``SeedSequence``: changing the noise level does not change the
+scene, motion or gains, and the defects change no healthy photosite.
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..geometry.warps import homography_xy, project
+from ..solve.defects import DEAD, HOT, KINDS, STUCK
 from .motion import Shake, margin_px, shake_homographies, wave_parameters, wave_shift
 from .scenes import SCENES, dead_leaves, fit_scene, procedural_scene
 from .sensor import CFA_CHANNEL, PRESETS, Sensor, gain_pattern
@@ -31,6 +36,13 @@ from .sensor import CFA_CHANNEL, PRESETS, Sensor, gain_pattern
 WAVE_ITERATIONS = 30
 
 DEAD_LEAVES_MIN_PX = 3.0
+
+#: Shares of the kinds among simulated defective photosites: a sensor's 0.1 % hot, 0.02 % dead
+#: and 0.02 % stuck pixels.
+DEFECT_SHARES = {"hot": 0.70, "dead": 0.15, "stuck": 0.15}
+#: A hot photosite's offset, in units of its temporal noise in the reference frame: drawn
+#: log-uniformly in this range (the issue's threshold of a hot pixel is 5).
+HOT_OFFSET_NOISE = (5.0, 50.0)
 
 
 @dataclass(frozen=True)
@@ -60,6 +72,9 @@ class Burst:
     exposures : ndarray, shape (F,), optional
         Each frame's exposure relative to the reference's (1); None if all
         are exposed alike.
+    defects : ndarray of uint8, shape (H, W), optional
+        Defective photosites by kind (:data:`solve.defects.KINDS`, 0 healthy);
+        None without any.
     """
 
     frames: np.ndarray
@@ -71,6 +86,7 @@ class Burst:
     waves: np.ndarray | None = None
     object_offsets: np.ndarray | None = None
     exposures: np.ndarray | None = None
+    defects: np.ndarray | None = None
 
     @property
     def saturation(self) -> int:
@@ -140,6 +156,7 @@ def simulate_burst(
     moving_object: float = 0.0,
     parallax: float = 0.0,
     exposure_jitter: float = 0.0,
+    defects: float = 0.0,
     seed: int = 0,
 ) -> Burst:
     """Simulate a hand-held burst with known gain, motion and ideal frames.
@@ -170,15 +187,21 @@ def simulate_burst(
     exposure_jitter : float
         Sigma of the log of each frame's exposure relative to the
         reference's (auto-exposure steps, flickering light); 0: all alike.
+    defects : float
+        Fraction of photosites that are defective (hot, dead, stuck in
+        :data:`DEFECT_SHARES`); 0 for none.
     """
     h, w = shape
     if h < 2 or w < 2 or n_frames < 1:
         raise ValueError(f"need frames of at least 2x2 and one frame, got shape {shape}, {n_frames} frames")
     if sensor.cfa is not None and (len(sensor.cfa) != 4 or set(sensor.cfa) - set(CFA_CHANNEL)):
         raise ValueError(f"sensor.cfa must be a 2x2 RGB layout such as RGGB, got {sensor.cfa!r}")
-    # a fifth stream for the exposures: the first four (and every burst without jitter) stay as they were
-    rng_scene, rng_motion, rng_gain, rng_noise, rng_exposure = (
-        np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(5))
+    if not 0.0 <= defects < 1.0:
+        raise ValueError(f"defects must be a fraction in [0, 1), got {defects}")
+    # a fifth stream for the exposures and a sixth for the defects: the first ones (and every burst
+    # without jitter or defects) stay as they were
+    rng_scene, rng_motion, rng_gain, rng_noise, rng_exposure, rng_defect = (
+        np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(6))
     exposures = np.exp(exposure_jitter * rng_exposure.standard_normal(n_frames)) if exposure_jitter > 0 else None
     if exposures is not None:
         exposures[0] = 1.0
@@ -206,6 +229,8 @@ def simulate_burst(
     obj = _moving_object(raster, moving_object, n_frames, shape, scale, margin,
                          np.random.default_rng(rng_scene.integers(2**63)), homographies if parallax else None, parallax)
     moving = None if obj is None else np.zeros((n_frames, h, w), bool)
+    kinds = _defect_kinds(shape, defects, rng_defect) if defects > 0 else None
+    hot_offset = None
     full_scale_dn = float(sensor.white_level - sensor.black_level)
     for t in range(n_frames):
         view = dict(scale=scale, margin=margin, supersample=supersample, waves=None if waves is None else waves[t])
@@ -223,11 +248,37 @@ def simulate_burst(
         electrons = exposure * (1.0 if exposures is None else exposures[t]) * sensor.full_well_e * light
         ideal[t] = np.minimum(electrons * sensor.dn_per_e, full_scale_dn)
         collected = rng_noise.poisson(gain * electrons) if sensor.shot_noise else gain * electrons
+        if kinds is not None:  # after the healthy draws, from a stream of its own
+            if hot_offset is None:  # the reference frame sets each hot photosite's offset
+                noise = np.sqrt(gain * electrons + sensor.read_noise_e**2)
+                hot_offset = np.where(kinds == HOT, noise * np.exp(rng_defect.uniform(
+                    *np.log(HOT_OFFSET_NOISE), shape)), 0.0)
+            dark = rng_defect.poisson(hot_offset) if sensor.shot_noise else hot_offset
+            collected = np.where(kinds == DEAD, 0.0, collected + dark)
         signal = collected + rng_noise.normal(0.0, sensor.read_noise_e, shape)
         counts = np.floor(np.clip(signal, 0.0, sensor.full_well_e) * sensor.dn_per_e + 0.5) + sensor.black_level
         frames[t] = np.clip(counts, 0, sensor.white_level)
+        if kinds is not None:
+            if t == 0:
+                stuck_at = rng_defect.integers(sensor.black_level, sensor.white_level + 1, shape)
+            frames[t][kinds == STUCK] = stuck_at[kinds == STUCK]
     return Burst(frames=frames, gain=gain, ideal=ideal, homographies=homographies, sensor=sensor, moving=moving,
-                 waves=waves, object_offsets=None if obj is None else obj[2], exposures=exposures)
+                 waves=waves, object_offsets=None if obj is None else obj[2], exposures=exposures, defects=kinds)
+
+
+def _defect_kinds(shape: tuple[int, int], fraction: float, rng: np.random.Generator) -> np.ndarray:
+    """Kind of every photosite (:data:`solve.defects.KINDS`): ``fraction`` of them defective,
+    in :data:`DEFECT_SHARES`, at distinct random places."""
+    size = shape[0] * shape[1]
+    count = int(round(fraction * size))
+    places = rng.choice(size, count, replace=False)
+    kinds = np.zeros(size, np.uint8)
+    start = 0
+    for name, share in DEFECT_SHARES.items():
+        n = int(round(share * count)) if name != "stuck" else count - start
+        kinds[places[start:start + n]] = KINDS[name]
+        start += n
+    return kinds.reshape(shape)
 
 
 def _moving_object(raster, fraction, n_frames, shape, scale, margin, rng, homographies=None, parallax=0.0):

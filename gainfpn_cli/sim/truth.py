@@ -6,6 +6,7 @@ Layout of a simulation directory::
     truth/gain.exr               channel Y: the true gain a
     truth/ideal.exr              channel Y: noise-free, FPN-free frame 0, DN after black
     truth/homographies.json      H_t_ref per frame, and the conventions
+    truth/defects.exr            channel defect: defective photosites by kind (solve.defects.KINDS), with --defects
     truth/simulation.json        every parameter needed to make the burst again (and the exposures drawn)
 """
 
@@ -75,6 +76,8 @@ def save_burst(
             progress(1)
     write_exr(truth_dir / "gain.exr", {"Y": burst.gain})
     write_exr(truth_dir / "ideal.exr", {"Y": burst.ideal[0]})
+    if burst.defects is not None:
+        write_exr(truth_dir / "defects.exr", {"defect": burst.defects.astype(np.float32)})
     write_text(
         truth_dir / "homographies.json",
         json.dumps(
@@ -93,12 +96,14 @@ def save_burst(
 
 @dataclass(frozen=True)
 class Truth:
-    """What a simulation directory knows: the true gain, ideal frame 0, motion."""
+    """What a simulation directory knows: the true gain, ideal frame 0, motion, and the defective
+    photosites by kind (None if it has none)."""
 
     gain: np.ndarray
     ideal: np.ndarray
     homographies: np.ndarray
     parameters: dict
+    defects: np.ndarray | None = None
 
 
 def load_truth(sim_dir: str | Path) -> Truth:
@@ -114,7 +119,10 @@ def load_truth(sim_dir: str | Path) -> Truth:
         homographies = np.asarray(motion["H_t_ref"], dtype=np.float64)
     except (OSError, ValueError, KeyError) as exc:
         raise InputError(f"{truth_dir}: unreadable truth ({exc})") from None
-    return Truth(gain=gain["Y"], ideal=ideal["Y"], homographies=homographies, parameters=parameters)
+    defects = None
+    if (truth_dir / "defects.exr").exists():
+        defects = read_exr_planes(truth_dir / "defects.exr")[0]["defect"].astype(np.uint8)
+    return Truth(gain=gain["Y"], ideal=ideal["Y"], homographies=homographies, parameters=parameters, defects=defects)
 
 
 def residual_bound_percent(truth: Truth, mask: np.ndarray, n_frames: int) -> float | None:
