@@ -309,7 +309,8 @@ def _solve_planes(burst, frames, excluded, exposures, n_fit, in_frame, solver: _
         kp = pick(k)
         if solver.method == "accurate":
             model = select_model(kp, pick(confidence), force=solver.fpn_model)
-            report = dataclasses.replace(report, fpn_model=model.chosen, fpn_model_aic=model.scores, input_fpn_percent=model.split)
+            report = dataclasses.replace(report, fpn_model=model.chosen, fpn_model_aic=model.scores,
+                                         input_fpn_percent=model.split)
             kp, structured = model.k, model.chosen not in ("pixel", "none")
         result = physical(GainResult(kp, pick(confidence)), solver.gain_range, structured)
         pick(k)[...] = result.k
