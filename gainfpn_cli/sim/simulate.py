@@ -230,7 +230,6 @@ def simulate_burst(
                          np.random.default_rng(rng_scene.integers(2**63)), homographies if parallax else None, parallax)
     moving = None if obj is None else np.zeros((n_frames, h, w), bool)
     kinds = _defect_kinds(shape, defects, rng_defect) if defects > 0 else None
-    hot_offset = None
     full_scale_dn = float(sensor.white_level - sensor.black_level)
     for t in range(n_frames):
         view = dict(scale=scale, margin=margin, supersample=supersample, waves=None if waves is None else waves[t])
@@ -249,18 +248,17 @@ def simulate_burst(
         ideal[t] = np.minimum(electrons * sensor.dn_per_e, full_scale_dn)
         collected = rng_noise.poisson(gain * electrons) if sensor.shot_noise else gain * electrons
         if kinds is not None:  # after the healthy draws, from a stream of its own
-            if hot_offset is None:  # the reference frame sets each hot photosite's offset
+            if t == 0:  # the reference frame sets each hot photosite's offset, and each stuck one's reading
                 noise = np.sqrt(gain * electrons + sensor.read_noise_e**2)
                 hot_offset = np.where(kinds == HOT, noise * np.exp(rng_defect.uniform(
                     *np.log(HOT_OFFSET_NOISE), shape)), 0.0)
+                stuck_at = rng_defect.integers(sensor.black_level, sensor.white_level + 1, shape)
             dark = rng_defect.poisson(hot_offset) if sensor.shot_noise else hot_offset
             collected = np.where(kinds == DEAD, 0.0, collected + dark)
         signal = collected + rng_noise.normal(0.0, sensor.read_noise_e, shape)
         counts = np.floor(np.clip(signal, 0.0, sensor.full_well_e) * sensor.dn_per_e + 0.5) + sensor.black_level
         frames[t] = np.clip(counts, 0, sensor.white_level)
         if kinds is not None:
-            if t == 0:
-                stuck_at = rng_defect.integers(sensor.black_level, sensor.white_level + 1, shape)
             frames[t][kinds == STUCK] = stuck_at[kinds == STUCK]
     return Burst(frames=frames, gain=gain, ideal=ideal, homographies=homographies, sensor=sensor, moving=moving,
                  waves=waves, object_offsets=None if obj is None else obj[2], exposures=exposures, defects=kinds)
@@ -274,8 +272,8 @@ def _defect_kinds(shape: tuple[int, int], fraction: float, rng: np.random.Genera
     places = rng.choice(size, count, replace=False)
     kinds = np.zeros(size, np.uint8)
     start = 0
-    for name, share in DEFECT_SHARES.items():
-        n = int(round(share * count)) if name != "stuck" else count - start
+    for i, (name, share) in enumerate(DEFECT_SHARES.items()):
+        n = count - start if i == len(DEFECT_SHARES) - 1 else int(round(share * count))  # the last: the rest
         kinds[places[start:start + n]] = KINDS[name]
         start += n
     return kinds.reshape(shape)
