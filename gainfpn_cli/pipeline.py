@@ -23,7 +23,7 @@ from .geometry.resample import positions as warp_positions
 from .motion.estimate import estimate_motion
 from .motion.exposure import relative_exposures, rough_exposures, significant
 from .motion.masks import moving_masks
-from .report import Exposure, FrameMotion, Holdout, Layer, Motion, PlaneReport, Prnu, Report, status_of
+from .report import Exposure, FrameMotion, Holdout, Layer, Motion, PlaneReport, Prnu, Report
 from .solve.accurate import AccurateOptions, power_of_two_scale, solve_accurate
 from .solve.blocks import solve_paper
 from .solve.fpnmodel import select_model
@@ -193,7 +193,6 @@ def _estimate(burst: LoadedBurst, cfg: Config, solver: _Solver, progress: Progre
     # only the accurate solver's confidence is a calibrated standard error
     calibrated = (confidence > 0).any() and all(p.method == "accurate" for p in plane_reports.values())
     report = Report(
-        status=status_of(holdout_report),
         prnu_percent=Prnu.combined({name: p.input_fpn_percent for name, p in plane_reports.items()
                                     if p.input_fpn_percent is not None}),
         predicted_residual_percent=float(100 * np.median(sigma[confidence > 0])) if calibrated else None,

@@ -159,8 +159,6 @@ class PlaneReport:
     def to_json(self) -> dict:
         """Flat, as ``report.json`` holds it: the method, the solver's counts, then the rest."""
         data = {"method": self.method, **vars(self.solver), "solved_on": self.solved_on}
-        if isinstance(self.solver, AccurateStats):
-            data["gmres_iterations"] = list(self.solver.gmres_iterations)
         if self.fpn_model is not None:
             data.update(fpn_model=self.fpn_model, fpn_model_aic=self.fpn_model_aic,
                         input_fpn_percent=self.input_fpn_percent)
@@ -176,7 +174,6 @@ class PlaneReport:
 class Report:
     """What an estimate found and how: the report of :func:`pipeline.estimate`."""
 
-    status: str  # accepted / rejected (k = 1 written) / unchecked: what the held-out frame said
     motion: Motion
     prnu_percent: Prnu = field(default_factory=Prnu)
     predicted_residual_percent: float | None = None  # median predicted sigma_k (the accurate solver's)
@@ -193,6 +190,14 @@ class Report:
     versions: dict = field(default_factory=dict)
     warnings: tuple = ()
     version: str = __version__
+
+    @property
+    def status(self) -> str:
+        """``accepted`` (the held-out frame confirms the map), ``rejected`` (it did not: k = 1 was
+        written) or ``unchecked`` (no frame held out)."""
+        if self.holdout is None:
+            return "unchecked"
+        return "accepted" if self.holdout.passed else "rejected"
 
     @property
     def fpn_models(self) -> str:
@@ -236,7 +241,6 @@ class Report:
         """The report ``to_json`` wrote; KeyError or TypeError if it is not one."""
         holdout = data["holdout"]
         return cls(
-            status=data["status"],
             motion=Motion.from_json(data["motion"]),
             prnu_percent=Prnu.from_json(data["prnu_percent"]),
             predicted_residual_percent=data["predicted_residual_percent"],
@@ -254,11 +258,3 @@ class Report:
             warnings=tuple(data["warnings"]),
             version=data["version"],
         )
-
-
-def status_of(holdout: Holdout | None) -> str:
-    """``accepted`` (the hold-out frame confirms the map), ``rejected`` (it did not: k = 1 was
-    written) or ``unchecked`` (no frame held out)."""
-    if holdout is None:
-        return "unchecked"
-    return "accepted" if holdout.passed else "rejected"

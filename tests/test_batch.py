@@ -184,7 +184,7 @@ def test_the_summary_gives_the_largest_exposure_difference_divided_out():
     from gainfpn_cli.tools.batch import _row
 
     plane = PlaneReport("accurate", "Y", AccurateStats(1, (10,), 0, 0, 0.8), "pixel", {}, {"pixel": 5.0})
-    report = Report(status="unchecked", motion=Motion("affine"), predicted_residual_percent=0.6, planes={"Y": plane},
+    report = Report(motion=Motion("affine"), predicted_residual_percent=0.6, planes={"Y": plane},
                     prnu_percent=Prnu.of({"pixel": 5.0, "column": 0.0, "row": 0.0}),
                     exposure=Exposure("per-frame", (1.0, 1.05, 0.97), (1.0, 1.05, 0.97), (None, 0.01, 0.01)))
     assert _row("x", report, 1.0)["exposure_spread_percent"] == 5.0

@@ -10,7 +10,7 @@ from gainfpn_cli.preview import PREVIEW_PX, UNESTIMATED, shown, write_preview
 from gainfpn_cli.report import Holdout, Motion, PlaneReport, Prnu, Report
 from gainfpn_cli.solve.result import AccurateStats
 
-REPORT = Report(status="accepted", motion=Motion("affine"), inputs=("a", "b", "c", "d"),
+REPORT = Report(motion=Motion("affine"), inputs=("a", "b", "c", "d"),
                 planes={"Y": PlaneReport("accurate", "Y", AccurateStats(1, (10,), 0, 0, 0.8), "pixel")},
                 prnu_percent=Prnu.of({"pixel": 4.9, "column": 1.0, "row": 0.1}), predicted_residual_percent=0.5,
                 holdout=Holdout("d", 0.2, True))
@@ -42,6 +42,6 @@ def test_maps_of_every_kind_are_drawn_with_unestimated_pixels_in_the_legend_colo
 def test_a_rejected_estimate_draws_a_flat_map(tmp_path):
     k = np.ones((64, 80, 1), np.float32)
     report = dataclasses.replace(REPORT, predicted_residual_percent=None, holdout=Holdout("d", 1.3, False),
-                                 prnu_percent=Prnu(), status="rejected")
+                                 prnu_percent=Prnu())
     write_preview(tmp_path / "p.png", k, np.zeros_like(k), report=report, name="b/")
     assert cv2.imread(str(tmp_path / "p.png")) is not None

@@ -17,7 +17,7 @@ ACCURATE = PlaneReport("accurate", "G", AccurateStats(6, (12, 30), 5, 1, 0.81), 
 @pytest.mark.parametrize("plane", [ACCURATE, PlaneReport("paper", "Y", PaperStats(12, 1, 0, 64, 0, 4000))])
 def test_the_json_of_a_report_reads_back_to_the_same_report(plane, exposure):
     frames = (FrameMotion("b.exr", 300, 280, 0.04, 2.5, [[1.0, 0, 0.5], [0, 1, 0], [0, 0, 1]]),)
-    report = Report(status="accepted", motion=Motion("layers", "lowest GRIC", (Layer("shift", 40),), frames, 0, [0.0, 1.5]),
+    report = Report(motion=Motion("layers", "lowest GRIC", (Layer("shift", 40),), frames, 0, [0.0, 1.5]),
                     prnu_percent=Prnu.combined({"R@00": {"pixel": 1.0, "column": 0.2, "row": 0.0},
                                                 "B@11": {"pixel": 1.2, "column": 0.1, "row": 0.05}}),
                     predicted_residual_percent=0.4, holdout=Holdout("c.exr", 0.31, True), estimated_percent=98.5,
@@ -42,5 +42,5 @@ def test_prnu_parts_add_in_quadrature_and_planes_combine_as_root_mean_square():
 
 
 def test_times_add_up_to_the_total():
-    report = Report(status="unchecked", motion=Motion("shift"), timings={"read_s": 1.0, "solve_s": 2.0})
+    report = Report(motion=Motion("shift"), timings={"read_s": 1.0, "solve_s": 2.0})
     assert report.with_timings(write_s=0.5).timings == {"read_s": 1.0, "solve_s": 2.0, "write_s": 0.5, "total_s": 3.5}
