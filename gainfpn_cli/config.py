@@ -198,7 +198,8 @@ class OutputConfig:
     corrected: bool = _key(True, boolean, "write every corrected input frame")
     preview: bool = _key(True, boolean, "write preview.png of the gain map")
     holdout: bool = _key(
-        True, boolean, "fit without the last frame and check k helps on it; if not, write k = 1 and warn"
+        True, boolean, "fit without the last frame and check, plane by plane, that k helps on it by more than the "
+        "check's noise; where not, write k = 1 and warn"
     )
 
 

@@ -23,11 +23,11 @@ from .geometry.resample import positions as warp_positions
 from .motion.estimate import estimate_motion
 from .motion.exposure import relative_exposures, rough_exposures, significant
 from .motion.masks import moving_masks
-from .report import Exposure, FrameMotion, Holdout, Layer, Motion, PlaneReport, Prnu, Report
+from .report import Exposure, FrameMotion, Holdout, Layer, Motion, PlaneCheck, PlaneReport, Prnu, Report
 from .solve.accurate import AccurateOptions, power_of_two_scale, solve_accurate
 from .solve.blocks import solve_paper
 from .solve.fpnmodel import select_model
-from .solve.holdout import holdout_ratio
+from .solve.holdout import holdout_checks, pooled
 from .solve.kkt import SolveOptions
 from .solve.result import GainResult, physical, sigma_from_confidence
 
@@ -161,8 +161,8 @@ def _estimate(burst: LoadedBurst, cfg: Config, solver: _Solver, progress: Progre
 
     t0 = time.perf_counter()
     n_fit = len(fit_frames)
-    fit = in_frame.select(range(n_fit))
-    k, confidence, plane_reports = _solve_planes(burst, frames, excluded, exposures, n_fit, fit, solver, progress)
+    k, confidence, plane_reports = _solve_planes(burst, frames, excluded, exposures, slice(0, n_fit), in_frame, solver,
+                                                 progress)
     for round_ in range(1, cfg.motion.refine_rounds + 1):
         corrected, _ = motion_frames(frames * (k / np.float32(power_of_two_scale(frames[0])))[None], burst.cfa)
         # the model is chosen again: on frames without their gain pattern the choice can change (a forced
@@ -174,21 +174,21 @@ def _estimate(burst: LoadedBurst, cfg: Config, solver: _Solver, progress: Progre
         in_frame = motion.warp.conjugate(np.linalg.inv(S_motion))
         excluded, moving = _moving(frames, corrected, motion.warp, burst.cfa, cfg, exposures)
         del corrected
-        fit = in_frame.select(range(n_fit))
-        k, confidence, plane_reports = _solve_planes(burst, frames, excluded, exposures, n_fit, fit, solver, progress)
+        k, confidence, plane_reports = _solve_planes(burst, frames, excluded, exposures, slice(0, n_fit), in_frame,
+                                                     solver, progress)
     timings["solve_s"] = time.perf_counter() - t0
 
     holdout_report = None
     if holdout:
-        ratio = holdout_ratio(frames, excluded, exposures, in_frame, k, saturation=burst.saturation,
-                              grids=_grids(burst, frames, solver.method))
-        holdout_report = Holdout(burst.paths[order[-1]].name, ratio, ratio < 1.0)
+        holdout_report, failed = _check(burst, frames, excluded, exposures, n_fit, in_frame, solver, plane_reports,
+                                        progress)
+        holdout_report = dataclasses.replace(holdout_report, frame=burst.paths[order[-1]].name)
         timings["holdout_s"] = time.perf_counter() - t0 - timings["solve_s"]
-        if ratio >= 1.0:
-            warnings.append(f"the estimate does not reduce the brightness-constancy residual on the held-out frame "
-                            f"(ratio {ratio:.3f}); writing k = 1 (no correction)")
-            k = np.ones_like(k)
-            confidence = np.zeros_like(confidence)
+        for grid in failed:
+            grid.scatter(k, np.ones_like(grid.gather(k)))
+            grid.scatter(confidence, np.zeros_like(grid.gather(confidence)))
+        if failed:
+            warnings.append(_rejection(holdout_report, failed))
     sigma = sigma_from_confidence(confidence)
     # only the accurate solver's confidence is a calibrated standard error
     calibrated = (confidence > 0).any() and all(p.method == "accurate" for p in plane_reports.values())
@@ -288,26 +288,42 @@ def _grids(burst: LoadedBurst, frames: np.ndarray, method: str) -> list:
     return list(solve_grids(burst.cfa, burst.channels, frames.shape[1:3], greens_together=method == "accurate"))
 
 
-def _solve_planes(burst, frames, excluded, exposures, n_fit, in_frame, solver: _Solver, progress):
-    """k and confidence of every plane from the first ``n_fit`` frames, with the FPN model and the gauge."""
+def _solve_planes(burst, frames, excluded, exposures, used: slice, in_frame, solver: _Solver, progress, *,
+                  regions: dict | None = None, models: dict | None = None):
+    """k and confidence of every plane from the frames ``used``, with the FPN model and the gauge.
+
+    ``regions`` (grid name -> (rows, columns) slices) solves only there (k = 1 and confidence 0
+    elsewhere); ``models`` (plane name -> FPN model) forces each plane's model."""
     k = np.ones(frames.shape[1:], np.float32)
     confidence = np.zeros(frames.shape[1:], np.float32)
-    fit = frames[:n_fit]
-    left_out = None if excluded is None else np.broadcast_to(excluded[:n_fit, ..., None], fit.shape)  # every channel
+    fit = frames[used]  # a slice: a view
+    left_out = None if excluded is None else np.broadcast_to(excluded[used, ..., None], fit.shape)  # every channel
+    motion = in_frame.select(range(len(frames))[used])
     solved = {}
     for grid in _grids(burst, frames, solver.method):
-        result = _solve_grid(grid.gather(fit), None if left_out is None else grid.gather(left_out),
-                             in_frame.conjugate(grid.S), burst.saturation, solver, progress, grid.name,
-                             exposures=exposures[:n_fit])
-        grid.scatter(k, result.k)
-        grid.scatter(confidence, result.confidence)
+        grid_frames, grid_left_out, grid_motion = grid.gather(fit), None, motion.conjugate(grid.S)
+        if left_out is not None:
+            grid_left_out = grid.gather(left_out)
+        if regions is not None:
+            rows, columns = regions[grid.name]
+            grid_frames = grid_frames[:, rows, columns]
+            grid_left_out = None if grid_left_out is None else grid_left_out[:, rows, columns]
+            grid_motion = grid_motion.conjugate(np.array([[1.0, 0, columns.start], [0, 1.0, rows.start], [0, 0, 1]]))
+        result = _solve_grid(grid_frames, grid_left_out, grid_motion, burst.saturation, solver, progress, grid.name,
+                             exposures=exposures[used])
+        grid_k, grid_confidence = result.k, result.confidence
+        if regions is not None:
+            grid_k, grid_confidence = np.ones_like(grid.gather(k)), np.zeros_like(grid.gather(confidence))
+            grid_k[rows, columns], grid_confidence[rows, columns] = result.k, result.confidence
+        grid.scatter(k, grid_k)
+        grid.scatter(confidence, grid_confidence)
         solved.update({name: PlaneReport(solver.method, grid.name, result.stats) for name in grid.positions})
     reports = {}
     for name, pick, _ in plane_views(burst.cfa, burst.channels):  # the gauge and the FPN model, plane by plane
         report, structured = solved[name], False
         kp = pick(k)
         if solver.method == "accurate":
-            model = select_model(kp, pick(confidence), force=solver.fpn_model)
+            model = select_model(kp, pick(confidence), force=(models or {}).get(name) or solver.fpn_model)
             report = dataclasses.replace(report, fpn_model=model.chosen, fpn_model_aic=model.scores,
                                          input_fpn_percent=model.split)
             kp, structured = model.k, model.chosen not in ("pixel", "none")
@@ -316,6 +332,48 @@ def _solve_planes(burst, frames, excluded, exposures, n_fit, in_frame, solver: _
         pick(confidence)[...] = result.confidence
         reports[name] = report
     return k, confidence, reports
+
+
+#: Side (px of each grid) of the central region the hold-out check fits again without the reference:
+#: enough blocks for a standard error of the ratio near 1 % (256 blocks of 16 px), at a small cost
+#: on large frames (a 12 MP mosaic's planes are 2000 px wide).
+CHECK_SIDE = 256
+#: The hold-out check keeps a plane's estimate only where its residual ratio is below 1 by this many
+#: standard errors (one-sided, about 2 % of estimates that do not help would pass by chance).
+CHECK_Z = 2.0
+
+
+def _check(burst, frames, excluded, exposures, n_fit, in_frame, solver: _Solver, reports, progress):
+    """The hold-out check (:mod:`solve.holdout`) of every grid, and the grids it rejects.
+
+    k is fitted again on the central :data:`CHECK_SIDE` px of each grid, from the fitted frames
+    without the reference and with each plane's FPN model as chosen, so that neither frame the
+    check compares is in it."""
+    grids = _grids(burst, frames, solver.method)
+    regions = {}
+    for grid in grids:
+        h, w = grid.gather(frames[0]).shape
+        y0, x0 = max(0, (h - CHECK_SIDE) // 2), max(0, (w - CHECK_SIDE) // 2)
+        regions[grid.name] = (slice(y0, min(h, y0 + CHECK_SIDE)), slice(x0, min(w, x0 + CHECK_SIDE)))
+    k_check, _, _ = _solve_planes(burst, frames, excluded, exposures, slice(1, n_fit), in_frame, solver, progress,
+                                  regions=regions, models={name: p.fpn_model for name, p in reports.items()})
+    checks = holdout_checks(frames, excluded, exposures, in_frame, k_check, grids=grids, saturation=burst.saturation,
+                            regions=regions)
+    failed = [grid for grid in grids if not checks[grid.name].passed(CHECK_Z)]
+    every = pooled(checks.values())
+    planes = {name: PlaneCheck(c.ratio, c.standard_error, c.passed(CHECK_Z)) for name, c in checks.items()}
+    return Holdout("", every.ratio, len(failed) < len(grids), every.standard_error, planes), failed
+
+
+def _rejection(holdout: Holdout, failed) -> str:
+    """The warning of planes the hold-out check rejected: what was written, why, and what would help."""
+    which = "the estimate" if len(failed) == len(holdout.planes) else "the " + ", ".join(g.name for g in failed)
+    ratios = ", ".join(f"{g.name} {holdout.planes[g.name].residual_ratio:.3f} +- "
+                       f"{holdout.planes[g.name].standard_error:.3f}" for g in failed)
+    return (f"the hold-out frame does not confirm {which} (residual ratio with k over without: {ratios}; a "
+            f"correction is kept only below 1 by {CHECK_Z:g} standard errors), so k = 1 (no correction) was written "
+            f"there: the burst is too noisy or too aliased for its gain pattern; more frames, more light or more "
+            f"motion would help")
 
 
 def _solve_grid(frames, excluded, motion, saturation, solver: _Solver, progress, name,

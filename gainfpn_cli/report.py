@@ -60,13 +60,34 @@ class Prnu:
 
 
 @dataclass(frozen=True)
+class PlaneCheck:
+    """The hold-out check of one grid (:mod:`solve.holdout`): residual ratio, its standard error,
+    and whether it is below 1 by enough standard errors for the plane's correction to be kept."""
+
+    residual_ratio: float
+    standard_error: float
+    passed: bool
+
+
+@dataclass(frozen=True)
 class Holdout:
-    """The check on the frame held out of the fit: the brightness-constancy residual with k over
-    without; ``passed`` when k reduces it."""
+    """The check on the frame held out of the fit (:mod:`solve.holdout`): the brightness-constancy
+    residual with k over without, over all planes, and its standard error; each grid's check in
+    ``planes`` (a grid that fails is written as k = 1); ``passed`` when any plane's correction is kept."""
 
     frame: str
     residual_ratio: float
     passed: bool
+    standard_error: float | None = None
+    planes: dict = field(default_factory=dict)  # grid name -> PlaneCheck
+
+    def to_json(self) -> dict:
+        return {**vars(self), "planes": {name: vars(c).copy() for name, c in self.planes.items()}}
+
+    @classmethod
+    def from_json(cls, data: dict) -> "Holdout":
+        planes = {name: PlaneCheck(**c) for name, c in (data.get("planes") or {}).items()}
+        return cls(data["frame"], data["residual_ratio"], data["passed"], data.get("standard_error"), planes)
 
 
 @dataclass(frozen=True)
@@ -193,8 +214,9 @@ class Report:
 
     @property
     def status(self) -> str:
-        """``accepted`` (the held-out frame confirms the map), ``rejected`` (it did not: k = 1 was
-        written) or ``unchecked`` (no frame held out)."""
+        """``accepted`` (the held-out frame confirms the map, or some of its planes: the others
+        were written as k = 1), ``rejected`` (it confirms none: k = 1 was written) or
+        ``unchecked`` (no frame held out)."""
         if self.holdout is None:
             return "unchecked"
         return "accepted" if self.holdout.passed else "rejected"
@@ -221,7 +243,7 @@ class Report:
             "status": self.status,
             "prnu_percent": self.prnu_percent.to_json(),
             "predicted_residual_percent": self.predicted_residual_percent,
-            "holdout": None if self.holdout is None else vars(self.holdout).copy(),
+            "holdout": None if self.holdout is None else self.holdout.to_json(),
             "estimated_percent": self.estimated_percent,
             "inputs": [s.to_json() for s in self.inputs],
             "dark": None if self.dark is None else self.dark.to_json(),
@@ -244,7 +266,7 @@ class Report:
             motion=Motion.from_json(data["motion"]),
             prnu_percent=Prnu.from_json(data["prnu_percent"]),
             predicted_residual_percent=data["predicted_residual_percent"],
-            holdout=None if holdout is None else Holdout(**holdout),
+            holdout=None if holdout is None else Holdout.from_json(holdout),
             estimated_percent=data["estimated_percent"],
             inputs=tuple(FileStamp(**i) for i in data["inputs"]),
             dark=None if data["dark"] is None else FileStamp(**data["dark"]),

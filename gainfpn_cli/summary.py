@@ -18,8 +18,13 @@ def prnu_text(prnu: Prnu) -> str:
 def holdout_text(holdout: Holdout | None) -> str:
     if holdout is None:
         return "hold-out off"
-    verdict = "accepted" if holdout.passed else "rejected: k = 1 written"
-    return f"hold-out {verdict} (residual ratio {holdout.residual_ratio:.3f})"
+    failed = [name for name, check in holdout.planes.items() if not check.passed]
+    if not holdout.passed:
+        verdict = "rejected: k = 1 written"
+    else:
+        verdict = "accepted" + (f" ({', '.join(failed)}: k = 1 written)" if failed else "")
+    error = "" if holdout.standard_error is None else f" +- {holdout.standard_error:.3f}"
+    return f"hold-out {verdict} (residual ratio {holdout.residual_ratio:.3f}{error})"
 
 
 def after_text(report: Report) -> str:

@@ -89,7 +89,7 @@ def test_holdout_rejects_an_estimate_that_does_not_help(exr_burst, monkeypatch):
     cfg = load_config(overrides={"solver.workers": 1})
     burst = load_burst([folder], cfg)
 
-    def harmful(burst_, frames, excluded, exposures, n_fit, H, cfg_, progress):
+    def harmful(burst_, frames, excluded, exposures, used, H, cfg_, progress, **kwargs):  # the check's fit too
         k = 1 + 0.1 * np.random.default_rng(0).standard_normal(frames.shape[1:])
         return k, np.ones(frames.shape[1:]), {"Y": PlaneReport("harmful", "Y", PaperStats(1, 0, 0, 0, 0, 0))}
 
@@ -97,7 +97,7 @@ def test_holdout_rejects_an_estimate_that_does_not_help(exr_burst, monkeypatch):
     result = estimate(burst, cfg)
     assert result.report.holdout.passed is False and result.report.holdout.residual_ratio > 1
     assert np.all(result.k == 1.0) and np.all(result.confidence == 0.0)
-    assert "writing k = 1" in result.warnings[0]
+    assert "k = 1 (no correction) was written" in result.warnings[0]
 
 
 def test_holdout_accepts_a_good_estimate(exr_burst):

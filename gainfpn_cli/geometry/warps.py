@@ -109,7 +109,8 @@ class GlobalWarp:
         return GlobalWarp(np.array([np.linalg.inv(S) @ H @ S for H in self.homographies]))
 
     def select(self, frames) -> "GlobalWarp":
-        """The motion of a subset of the frames (the first must be the reference)."""
+        """The motion of a subset of the frames (``H_t_ref`` stay relative to the reference, which
+        may be left out)."""
         return GlobalWarp(self.homographies[list(frames)])
 
 
@@ -280,16 +281,22 @@ class LayeredWarp:
     to_frame : ndarray, shape (3, 3)
         The pixels this object speaks -> frame pixels (identity unless
         :meth:`conjugate` made it).
+    reference_labels : ndarray of uint8, shape (h, w)
+        The reference's labels (``labels[0]`` unless :meth:`select` left the
+        reference out): a trajectory needs the reference to see its layer.
     """
 
     layers: np.ndarray
     labels: np.ndarray
     to_labels: np.ndarray
     to_frame: np.ndarray = None
+    reference_labels: np.ndarray = None
 
     def __post_init__(self):
         if self.to_frame is None:
             object.__setattr__(self, "to_frame", np.eye(3))
+        if self.reference_labels is None:
+            object.__setattr__(self, "reference_labels", self.labels[0])
 
     @property
     def n_frames(self) -> int:
@@ -300,11 +307,13 @@ class LayeredWarp:
         """The dominant layer's ``H_t_ref``."""
         return self.layers[:, 0]
 
-    def label(self, t: int, points: np.ndarray) -> np.ndarray:
-        """The layer frame t sees at frame-pixel ``points`` (nearest label pixel; beyond the grid: its edge)."""
+    def label(self, t: int | None, points: np.ndarray) -> np.ndarray:
+        """The layer frame t (None: the reference) sees at frame-pixel ``points`` (nearest label pixel;
+        beyond the grid: its edge)."""
         g = np.rint(_transform(self.to_labels, points)).astype(np.int64)
         h, w = self.labels.shape[1:]
-        return self.labels[t][np.clip(g[..., 1], 0, h - 1), np.clip(g[..., 0], 0, w - 1)]
+        labels = self.reference_labels if t is None else self.labels[t]
+        return labels[np.clip(g[..., 1], 0, h - 1), np.clip(g[..., 0], 0, w - 1)]
 
     def map_points(self, s: int, t: int, points: np.ndarray) -> np.ndarray:
         """Where frame t sees what frame s sees at ``points`` (``(..., 2)``); :data:`NOWHERE` if nowhere."""
@@ -315,7 +324,7 @@ class LayeredWarp:
             on = np.flatnonzero(seen == layer)
             p = _transform(np.linalg.inv(self.layers[s, layer]), q[on])
             moved = _transform(self.layers[t, layer], p)
-            ok = (self.label(0, p) == layer) & (self.label(t, moved) == layer)
+            ok = (self.label(None, p) == layer) & (self.label(t, moved) == layer)
             out[on[ok]] = moved[ok]
         own = _transform(np.linalg.inv(self.to_frame), out)
         own[out[:, 0] == NOWHERE] = NOWHERE
@@ -333,11 +342,14 @@ class LayeredWarp:
 
     def conjugate(self, S: np.ndarray) -> "LayeredWarp":
         """The same motion in pixels ``c`` with ``S c`` = these pixels."""
-        return LayeredWarp(self.layers, self.labels, self.to_labels, self.to_frame @ np.asarray(S, np.float64))
+        return LayeredWarp(self.layers, self.labels, self.to_labels, self.to_frame @ np.asarray(S, np.float64),
+                           self.reference_labels)
 
     def select(self, frames) -> "LayeredWarp":
+        """The motion of a subset of the frames (the reference's labels kept even if it is left out)."""
         frames = list(frames)
-        return LayeredWarp(self.layers[frames], self.labels[frames], self.to_labels, self.to_frame)
+        return LayeredWarp(self.layers[frames], self.labels[frames], self.to_labels, self.to_frame,
+                           self.reference_labels)
 
 
 def as_warp(motion) -> GlobalWarp | FieldWarp | LayeredWarp:

@@ -1,0 +1,96 @@
+"""The hold-out check: unbiased by the fit's noise, significant against its own noise, plane by plane."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from gainfpn_cli import api, pipeline
+from gainfpn_cli.geometry.planes import solve_grids
+from gainfpn_cli.geometry.warps import GlobalWarp, LayeredWarp
+from gainfpn_cli.solve.holdout import Check, _jackknife, holdout_checks
+from gainfpn_cli.solve.result import GainResult
+from gainfpn_cli.sim.sensor import PRESETS
+from gainfpn_cli.sim.simulate import simulate_burst
+
+MONO12 = dataclasses.replace(PRESETS["raw12"], cfa=None, fpn_pixel=0.02)
+
+
+def test_jackknife_standard_error_is_the_spread_of_the_ratio():
+    # blocks of a residual ratio near 0.95: the jackknife's error of one draw against the spread of 400 draws
+    rng = np.random.default_rng(0)
+
+    def draw():
+        den = rng.gamma(20.0, 1.0, 300)
+        return den * rng.normal(0.95, 0.1, 300), den
+
+    ratios = [_jackknife(*draw()).ratio for _ in range(400)]
+    errors = [_jackknife(*draw()).standard_error for _ in range(50)]
+    assert np.mean(errors) == pytest.approx(np.std(ratios), rel=0.15)
+
+
+def test_a_correction_is_kept_only_below_one_by_z_standard_errors():
+    assert Check(0.95, 0.02, np.ones(2), np.ones(2)).passed(2.0)
+    assert not Check(0.97, 0.02, np.ones(2), np.ones(2)).passed(2.0)
+    assert not Check(1.0, float("inf"), np.ones(1), np.ones(1)).passed(2.0)
+
+
+def test_the_check_does_not_see_the_noise_the_fit_learned():
+    # a dark 12-bit burst: k learns ~1/7 of the reference's noise, so comparing the held-out frame with
+    # the reference under the written k flatters it; the check must agree with two frames not fitted
+    b = simulate_burst(shape=(240, 320), n_frames=9, sensor=MONO12, exposure=0.1, scene="dead-leaves", seed=3)
+    frames = b.frames.astype(np.float32) - MONO12.black_level
+    result = api.estimate(frames[:8], saturation=MONO12.white_level - MONO12.black_level, **{"solver.workers": 1})
+    assert result.report.status == "accepted"  # (ratio 0.91 +- 0.01 when written)
+    grids = list(solve_grids(None, ("Y",), frames.shape[1:], greens_together=True))
+    k = result.k
+    stack = frames[..., None]
+
+    def ratio(pair):
+        picked = stack[list(pair)]
+        return holdout_checks(picked, None, np.ones(2), GlobalWarp(b.homographies[list(pair)]), k, grids=grids,
+                              saturation=None)["Y"].ratio
+
+    unfitted, flattering = ratio((8, 7)), ratio((0, 7))
+    assert flattering < unfitted - 0.05  # the bias is real
+    assert result.report.holdout.residual_ratio == pytest.approx(unfitted, abs=0.03)
+
+
+def test_a_plane_the_check_rejects_is_written_as_k_1_and_the_others_are_kept(monkeypatch):
+    # a solver that spoils the red plane (10 % random gains): only red falls back, with a warning
+    b = simulate_burst(shape=(240, 320), n_frames=8, sensor=PRESETS["raw12"], exposure=0.5, seed=100)
+    frames = b.frames.astype(np.float32) - PRESETS["raw12"].black_level
+    solve = pipeline._solve_grid
+
+    def spoil_red(frames_, excluded, motion, saturation, solver, progress, name, exposures=None):
+        result = solve(frames_, excluded, motion, saturation, solver, progress, name, exposures=exposures)
+        if name.startswith("R"):
+            noise = 0.1 * np.random.default_rng(0).standard_normal(result.k.shape).astype(np.float32)
+            result = GainResult(result.k * (1 + noise), result.confidence, result.stats)
+        return result
+
+    monkeypatch.setattr(pipeline, "_solve_grid", spoil_red)
+    saturation = PRESETS["raw12"].white_level - PRESETS["raw12"].black_level
+    result = api.estimate(frames, cfa="RGGB", saturation=saturation, **{"solver.workers": 1})
+    holdout = result.report.holdout
+    assert holdout.planes["R@00"].residual_ratio > 1 and not holdout.planes["R@00"].passed
+    assert holdout.planes["G"].passed and holdout.passed and result.report.status == "accepted"
+    red, green = result.k[0::2, 0::2, 0], result.k[0::2, 1::2, 0]
+    assert np.all(red == 1.0) and np.all(result.confidence[0::2, 0::2, 0] == 0.0)
+    assert np.std(green) > 0.005  # a 1 % FPN plane kept its correction
+    assert any("R@00" in w and "k = 1 (no correction) was written" in w for w in result.report.warnings)
+
+
+def test_layers_left_without_the_reference_keep_its_labels():
+    # the check fits without the reference: a layered motion must still ask the reference's labels
+    rng = np.random.default_rng(5)
+    layers = np.tile(np.eye(3), (3, 2, 1, 1))
+    layers[:, :, 0, 2] = rng.normal(0, 2, (3, 2))
+    labels = np.zeros((3, 40, 40), np.uint8)
+    labels[:, 10:30, 10:30] = 1
+    labels[0, 10:20, 10:30] = 0  # the reference sees less of layer 1
+    warp = LayeredWarp(layers, labels, np.eye(3))
+    points = np.stack(np.meshgrid(np.arange(40.0), np.arange(40.0)), axis=-1)
+    np.testing.assert_array_equal(warp.select([1, 2]).map_points(0, 1, points), warp.map_points(1, 2, points))
