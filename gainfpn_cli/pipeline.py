@@ -181,8 +181,7 @@ def _estimate(burst: LoadedBurst, cfg: Config, solver: _Solver, progress: Progre
     holdout_report = None
     if holdout:
         holdout_report, failed = _check(burst, frames, excluded, exposures, n_fit, in_frame, solver, plane_reports,
-                                        progress)
-        holdout_report = dataclasses.replace(holdout_report, frame=burst.paths[order[-1]].name)
+                                        progress, burst.paths[order[-1]].name)
         timings["holdout_s"] = time.perf_counter() - t0 - timings["solve_s"]
         for grid in failed:
             grid.scatter(k, np.ones_like(grid.gather(k)))
@@ -343,8 +342,9 @@ CHECK_SIDE = 256
 CHECK_Z = 2.0
 
 
-def _check(burst, frames, excluded, exposures, n_fit, in_frame, solver: _Solver, reports, progress):
-    """The hold-out check (:mod:`solve.holdout`) of every grid, and the grids it rejects.
+def _check(burst, frames, excluded, exposures, n_fit, in_frame, solver: _Solver, reports, progress, held_out: str):
+    """The hold-out check (:mod:`solve.holdout`) of every grid on the frame named ``held_out``, and
+    the grids it rejects.
 
     k is fitted again on the central :data:`CHECK_SIDE` px of each grid, from the fitted frames
     without the reference and with each plane's FPN model as chosen, so that neither frame the
@@ -362,7 +362,7 @@ def _check(burst, frames, excluded, exposures, n_fit, in_frame, solver: _Solver,
     failed = [grid for grid in grids if not checks[grid.name].passed(CHECK_Z)]
     every = pooled(checks.values())
     planes = {name: PlaneCheck(c.ratio, c.standard_error, c.passed(CHECK_Z)) for name, c in checks.items()}
-    return Holdout("", every.ratio, len(failed) < len(grids), every.standard_error, planes), failed
+    return Holdout(held_out, every.ratio, len(failed) < len(grids), every.standard_error, planes), failed
 
 
 def _rejection(holdout: Holdout, failed) -> str:

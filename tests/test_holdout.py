@@ -10,10 +10,10 @@ import pytest
 from gainfpn_cli import api, pipeline
 from gainfpn_cli.geometry.planes import solve_grids
 from gainfpn_cli.geometry.warps import GlobalWarp, LayeredWarp
-from gainfpn_cli.solve.holdout import Check, _jackknife, holdout_checks
-from gainfpn_cli.solve.result import GainResult
 from gainfpn_cli.sim.sensor import PRESETS
 from gainfpn_cli.sim.simulate import simulate_burst
+from gainfpn_cli.solve.holdout import Check, _jackknife, holdout_checks
+from gainfpn_cli.solve.result import GainResult
 
 MONO12 = dataclasses.replace(PRESETS["raw12"], cfa=None, fpn_pixel=0.02)
 
