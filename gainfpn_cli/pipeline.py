@@ -181,7 +181,7 @@ def _estimate(burst: LoadedBurst, cfg: Config, solver: _Solver, progress: Progre
     holdout_report = None
     if holdout:
         holdout_report, failed = _check(burst, frames, excluded, exposures, n_fit, in_frame, solver, plane_reports,
-                                        progress, burst.paths[order[-1]].name)
+                                        progress, burst.paths[order[-1]].name, k, confidence)
         timings["holdout_s"] = time.perf_counter() - t0 - timings["solve_s"]
         for grid in failed:
             grid.scatter(k, np.ones_like(grid.gather(k)))
@@ -342,9 +342,10 @@ CHECK_SIDE = 256
 CHECK_Z = 2.0
 
 
-def _check(burst, frames, excluded, exposures, n_fit, in_frame, solver: _Solver, reports, progress, held_out: str):
-    """The hold-out check (:mod:`solve.holdout`) of every grid on the frame named ``held_out``, and
-    the grids it rejects.
+def _check(burst, frames, excluded, exposures, n_fit, in_frame, solver: _Solver, reports, progress, held_out: str,
+           k, confidence):
+    """The hold-out check (:mod:`solve.holdout`) of the map ``k`` (``confidence``) of every grid on the
+    frame named ``held_out``, and the grids it rejects.
 
     k is fitted again on the central :data:`CHECK_SIDE` px of each grid, from the fitted frames
     without the reference and with each plane's FPN model as chosen, so that neither frame the
@@ -355,14 +356,28 @@ def _check(burst, frames, excluded, exposures, n_fit, in_frame, solver: _Solver,
         h, w = grid.gather(frames[0]).shape
         y0, x0 = max(0, (h - CHECK_SIDE) // 2), max(0, (w - CHECK_SIDE) // 2)
         regions[grid.name] = (slice(y0, min(h, y0 + CHECK_SIDE)), slice(x0, min(w, x0 + CHECK_SIDE)))
-    k_check, _, _ = _solve_planes(burst, frames, excluded, exposures, slice(1, n_fit), in_frame, solver, progress,
-                                  regions=regions, models={name: p.fpn_model for name, p in reports.items()})
+    k_check, confidence_check, _ = _solve_planes(
+        burst, frames, excluded, exposures, slice(1, n_fit), in_frame, solver, progress, regions=regions,
+        models={name: p.fpn_model for name, p in reports.items()})
     checks = holdout_checks(frames, excluded, exposures, in_frame, k_check, grids=grids, saturation=burst.saturation,
-                            regions=regions)
+                            regions=regions, disagreement=_disagreement(k_check, confidence_check, k, confidence,
+                                                                        calibrated=solver.method == "accurate"))
     failed = [grid for grid in grids if not checks[grid.name].passed(CHECK_Z)]
     every = pooled(checks.values())
-    planes = {name: PlaneCheck(c.ratio, c.standard_error, c.passed(CHECK_Z)) for name, c in checks.items()}
+    planes = {name: PlaneCheck(c.ratio, c.standard_error, c.passed(CHECK_Z), c.left_out) for name, c in checks.items()}
     return Holdout(held_out, every.ratio, len(failed) < len(grids), every.standard_error, planes), failed
+
+
+def _disagreement(k_check, confidence_check, k, confidence, *, calibrated: bool) -> np.ndarray:
+    """``(k_check - k)^2``, in the two maps' combined variance where their confidence is a standard
+    error (``calibrated``; the paper's block solver has none); 0 where either is unestimated."""
+    both = (confidence_check > 0) & (confidence > 0)
+    squared = np.where(both, k_check - k, np.float32(0)) ** 2
+    if calibrated:
+        variance = sigma_from_confidence(np.where(both, confidence_check, 1)) ** 2 \
+            + sigma_from_confidence(np.where(both, confidence, 1)) ** 2
+        squared = np.where(both, squared / np.maximum(variance, np.float32(1e-12)), np.float32(0))
+    return squared
 
 
 def _rejection(holdout: Holdout, failed) -> str:

@@ -62,11 +62,13 @@ class Prnu:
 @dataclass(frozen=True)
 class PlaneCheck:
     """The hold-out check of one grid (:mod:`solve.holdout`): residual ratio, its standard error,
-    and whether it is below 1 by enough standard errors for the plane's correction to be kept."""
+    whether it is below 1 by enough standard errors for the plane's correction to be kept, and the
+    16 px blocks left out because the check's own fit disagreed there with the written map."""
 
     residual_ratio: float
     standard_error: float
     passed: bool
+    left_out_blocks: int = 0
 
 
 @dataclass(frozen=True)

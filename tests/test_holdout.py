@@ -94,3 +94,28 @@ def test_layers_left_without_the_reference_keep_its_labels():
     warp = LayeredWarp(layers, labels, np.eye(3))
     points = np.stack(np.meshgrid(np.arange(40.0), np.arange(40.0)), axis=-1)
     np.testing.assert_array_equal(warp.select([1, 2]).map_points(0, 1, points), warp.map_points(1, 2, points))
+
+
+def test_blocks_where_the_checks_own_fit_went_wrong_are_left_out():
+    # the check's k off by 1 % from the written (true) gains, and by 30 % in one 32 px square (4 blocks):
+    # those blocks judge the check's own fit, not the written map; 30 % everywhere is judged as it is
+    b = simulate_burst(shape=(96, 128), n_frames=3, seed=8)
+    frames = b.frames.astype(np.float32)[[0, 2], ..., None]
+    grids = list(solve_grids(None, ("Y",), frames.shape[1:], greens_together=True))
+    written = (1.0 / b.gain)[..., None].astype(np.float32)
+    rng = np.random.default_rng(1)
+    small, noise = (s * rng.standard_normal(written.shape).astype(np.float32) for s in (0.01, 0.3))
+    patch = np.zeros(written.shape, bool)
+    patch[32:64, 64:96] = True
+
+    def check(k, disagreement=None):
+        return holdout_checks(frames, None, np.ones(2), GlobalWarp(b.homographies[[0, 2]]), k, grids=grids,
+                              saturation=None, disagreement=disagreement)["Y"]
+
+    spoiled = written * (1 + small + np.where(patch, noise, 0))
+    assert not check(spoiled).passed(2.0)  # the square alone rejects a map that is right elsewhere
+    kept = check(spoiled, (spoiled - written) ** 2)
+    assert kept.left_out == 4 and kept.passed(2.0) and kept.ratio < 0.5
+    everywhere = written * (1 + noise)
+    judged = check(everywhere, (everywhere - written) ** 2)
+    assert judged.left_out == 0 and not judged.passed(2.0)

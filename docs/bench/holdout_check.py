@@ -2,10 +2,12 @@
 
     python docs/bench/holdout_check.py bias    # the check against two frames no fit saw
     python docs/bench/holdout_check.py rates   # false accepts and rejects on 48 simulated bursts
+    python docs/bench/holdout_check.py short   # the same on short and very small bursts (42)
 
 Every burst is simulated with one frame more than the estimate gets: that unseen frame's MSE
 before over after correction says whether a map helps (frame 0 was fitted, and its MSE
-flatters k). Prints one JSON line per burst, then the counts. Takes about 8 minutes (rates).
+flatters k). Prints one JSON line per burst, then the counts. Takes about 8 minutes (rates) and 4
+(short).
 """
 
 from __future__ import annotations
@@ -65,7 +67,20 @@ def pool():
         yield dict(kind="good RGGB", sensor=PRESETS["raw12"], exposure=0.5, frames=8, scene="procedural", seed=seed)
 
 
-def rates():
+def short_bursts():
+    """42 bursts: good 8-bit bursts of 5, 6 and 8 frames at 96x128 and 240x320, and very small
+    aliased ones (64x80, 5 frames, the scene point-sampled), 6 seeds each."""
+    for seed in range(6):
+        scene = ("procedural", "dead-leaves")[seed % 2]
+        for shape in ((96, 128), (240, 320)):
+            for frames in (5, 6, 8):
+                yield dict(kind=f"good {shape[0]}x{shape[1]}, {frames} frames", sensor=PRESETS["paper"],
+                           exposure=0.75, frames=frames, scene=scene, seed=seed, shape=shape)
+        yield dict(kind="64x80 point-sampled, 5 frames", sensor=PRESETS["paper"], exposure=0.75, frames=5,
+                   scene=scene, seed=seed, shape=(64, 80), supersample=1)
+
+
+def rates(cases=pool):
     unguarded = {}
     solve_planes = pipeline._solve_planes
 
@@ -77,10 +92,11 @@ def rates():
 
     pipeline._solve_planes = keep
     rows = []
-    for case in pool():
+    for case in cases():
         s = case["sensor"]
-        b = simulate_burst(shape=(240, 320), n_frames=case["frames"] + 1, sensor=s, exposure=case["exposure"],
-                           scene=case["scene"], seed=100 + case["seed"], shake=case.get("shake", Shake()))
+        b = simulate_burst(shape=case.get("shape", (240, 320)), n_frames=case["frames"] + 1, sensor=s,
+                           exposure=case["exposure"], scene=case["scene"], seed=100 + case["seed"],
+                           shake=case.get("shake", Shake()), supersample=case.get("supersample", 4))
         frames = b.frames.astype(np.float32) - s.black_level
         est = api.estimate(frames[:-1], cfa=s.cfa, saturation=s.white_level - s.black_level,
                            **case.get("overrides", {}))
@@ -92,7 +108,8 @@ def rates():
 
         row = {"kind": case["kind"], "seed": case["seed"], "unguarded": mse_ratio(unguarded["k"]),
                "written": mse_ratio(est.k), "status": est.report.status,
-               "ratio": est.report.holdout.residual_ratio, "standard_error": est.report.holdout.standard_error}
+               "ratio": est.report.holdout.residual_ratio, "standard_error": est.report.holdout.standard_error,
+               "left_out_blocks": sum(p.left_out_blocks for p in est.report.holdout.planes.values())}
         rows.append(row)
         print(json.dumps(row), flush=True)
     harmful = [r for r in rows if r["unguarded"] < 1.0]
@@ -104,4 +121,4 @@ def rates():
 
 
 if __name__ == "__main__":
-    {"bias": bias, "rates": rates}[sys.argv[1] if len(sys.argv) > 1 else "rates"]()
+    {"bias": bias, "rates": rates, "short": lambda: rates(short_bursts)}[sys.argv[1] if len(sys.argv) > 1 else "rates"]()
