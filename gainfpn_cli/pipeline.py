@@ -9,27 +9,21 @@ from __future__ import annotations
 import dataclasses
 import platform
 import time
-from dataclasses import dataclass
 
 import numpy as np
 
-from . import __version__
+from . import __version__, solving
 from .burst import Estimate, LoadedBurst, Progress
 from .config import Config, config_dict
 from .errors import EstimationError, InputError, TrackingError
 from .files import check_consistent, find_frames, read_frame, stamp
-from .geometry.planes import frame_homography, motion_frames, plane_views, reference_cells, solve_grids
-from .geometry.resample import positions as warp_positions
+from .geometry.planes import frame_homography, motion_frames, reference_cells
 from .motion.estimate import estimate_motion
 from .motion.exposure import relative_exposures, rough_exposures, significant
 from .motion.masks import moving_masks
-from .report import Exposure, FrameMotion, Holdout, Layer, Motion, PlaneCheck, PlaneReport, Prnu, Report
-from .solve.accurate import AccurateOptions, power_of_two_scale, solve_accurate
-from .solve.blocks import solve_paper
-from .solve.fpnmodel import select_model
-from .solve.holdout import holdout_checks, pooled
-from .solve.kkt import SolveOptions
-from .solve.result import GainResult, physical, sigma_from_confidence
+from .report import Exposure, FrameMotion, Layer, Motion, Prnu, Report
+from .solve.accurate import power_of_two_scale
+from .solve.result import sigma_from_confidence
 
 #: Fewest frames a burst needs; the hold-out check needs one more, since a
 #: fit on 2 frames is never trusted. Measured: 2 frames, residual FPN 7.5-11 %
@@ -95,36 +89,13 @@ def estimate(burst: LoadedBurst, cfg: Config, *, progress: Progress | None = Non
     speed and bit-identical results."""
     from .parallel import single_threaded_math
 
-    solver = _Solver.from_config(cfg.solver, mosaic=burst.cfa is not None, executor=executor)
+    solver = solving.Solver.from_config(cfg.solver, mosaic=burst.cfa is not None, executor=executor)
     with single_threaded_math():
         return _estimate(burst, cfg, solver, progress)
 
 
-@dataclass(frozen=True)
-class _Solver:
-    """The solver section of the config, unpacked once per estimate into the solvers' options."""
 
-    method: str
-    paper: SolveOptions
-    block_size: int
-    accurate: AccurateOptions
-    fpn_model: str | None  # None: chosen by AIC
-    gain_range: tuple[float, float]
-    workers: int
-    executor: object = None
-
-    @classmethod
-    def from_config(cls, s, *, mosaic: bool, executor=None) -> "_Solver":
-        accurate = AccurateOptions(kernel=s.interpolation, anchors=s.anchors, partners=s.partners, rtol=s.rtol,
-                                   gauge_sigma=s.gauge_sigma, tile=s.tile, robust_rounds=s.robust_rounds,
-                                   gain_range=s.gain_range,
-                                   phase_weights=s.phase_weights == "all" or (s.phase_weights == "auto" and mosaic))
-        return cls(s.method, SolveOptions(lam=s.lam, max_condition=s.max_condition, k_range=s.gain_range),
-                   s.block_size, accurate, None if s.fpn_model == "auto" else s.fpn_model, s.gain_range, s.workers,
-                   executor)
-
-
-def _estimate(burst: LoadedBurst, cfg: Config, solver: _Solver, progress: Progress | None) -> Estimate:
+def _estimate(burst: LoadedBurst, cfg: Config, solver: solving.Solver, progress: Progress | None) -> Estimate:
     timings: dict[str, float] = {}
     warnings: list[str] = []
     order = [burst.reference] + [i for i in range(len(burst.paths)) if i != burst.reference]
@@ -161,8 +132,9 @@ def _estimate(burst: LoadedBurst, cfg: Config, solver: _Solver, progress: Progre
 
     t0 = time.perf_counter()
     n_fit = len(fit_frames)
-    k, confidence, plane_reports = _solve_planes(burst, frames, excluded, exposures, slice(0, n_fit), in_frame, solver,
-                                                 progress)
+    k, confidence, plane_reports, calibrations = solving.solve_planes(
+        burst, frames, excluded, exposures, slice(0, n_fit), in_frame, solver, progress,
+        split=cfg.motion.refine_rounds == 0)
     for round_ in range(1, cfg.motion.refine_rounds + 1):
         corrected, _ = motion_frames(frames * (k / np.float32(power_of_two_scale(frames[0])))[None], burst.cfa)
         # the model is chosen again: on frames without their gain pattern the choice can change (a forced
@@ -174,20 +146,22 @@ def _estimate(burst: LoadedBurst, cfg: Config, solver: _Solver, progress: Progre
         in_frame = motion.warp.conjugate(np.linalg.inv(S_motion))
         excluded, moving = _moving(frames, corrected, motion.warp, burst.cfa, cfg, exposures)
         del corrected
-        k, confidence, plane_reports = _solve_planes(burst, frames, excluded, exposures, slice(0, n_fit), in_frame,
-                                                     solver, progress)
+        k, confidence, plane_reports, calibrations = solving.solve_planes(
+            burst, frames, excluded, exposures, slice(0, n_fit), in_frame, solver, progress,
+            split=round_ == cfg.motion.refine_rounds)  # measured once, on the final fit
     timings["solve_s"] = time.perf_counter() - t0
 
     holdout_report = None
     if holdout:
-        holdout_report, failed = _check(burst, frames, excluded, exposures, n_fit, in_frame, solver, plane_reports,
-                                        progress, burst.paths[order[-1]].name, k, confidence)
+        holdout_report, failed = solving.check(burst, frames, excluded, exposures, n_fit, in_frame, solver,
+                                               plane_reports, calibrations, progress, burst.paths[order[-1]].name, k,
+                                               confidence)
         timings["holdout_s"] = time.perf_counter() - t0 - timings["solve_s"]
         for grid in failed:
             grid.scatter(k, np.ones_like(grid.gather(k)))
             grid.scatter(confidence, np.zeros_like(grid.gather(confidence)))
         if failed:
-            warnings.append(_rejection(holdout_report, failed))
+            warnings.append(solving.rejection(holdout_report, failed))
     sigma = sigma_from_confidence(confidence)
     # only the accurate solver's confidence is a calibrated standard error
     calibrated = (confidence > 0).any() and all(p.method == "accurate" for p in plane_reports.values())
@@ -280,134 +254,6 @@ def _exposures(motion_images, warp, burst, cfg) -> tuple[np.ndarray, Exposure]:
     return used, Exposure("per-frame", tuple(round(float(c), 6) for c in used),
                           tuple(round(float(c), 6) for c in measured),
                           tuple(float(e) if np.isfinite(e) else None for e in errors))
-
-
-def _grids(burst: LoadedBurst, frames: np.ndarray, method: str) -> list:
-    """The grids the solver runs on (the accurate solver takes a CFA's two greens together)."""
-    return list(solve_grids(burst.cfa, burst.channels, frames.shape[1:3], greens_together=method == "accurate"))
-
-
-def _solve_planes(burst, frames, excluded, exposures, used: slice, in_frame, solver: _Solver, progress, *,
-                  regions: dict | None = None, models: dict | None = None):
-    """k and confidence of every plane from the frames ``used``, with the FPN model and the gauge.
-
-    ``regions`` (grid name -> (rows, columns) slices) solves only there (k = 1 and confidence 0
-    elsewhere); ``models`` (plane name -> FPN model) forces each plane's model."""
-    k = np.ones(frames.shape[1:], np.float32)
-    confidence = np.zeros(frames.shape[1:], np.float32)
-    fit = frames[used]  # a slice: a view
-    left_out = None if excluded is None else np.broadcast_to(excluded[used, ..., None], fit.shape)  # every channel
-    motion = in_frame.select(range(len(frames))[used])
-    solved = {}
-    for grid in _grids(burst, frames, solver.method):
-        grid_frames, grid_left_out, grid_motion = grid.gather(fit), None, motion.conjugate(grid.S)
-        if left_out is not None:
-            grid_left_out = grid.gather(left_out)
-        if regions is not None:
-            rows, columns = regions[grid.name]
-            grid_frames = grid_frames[:, rows, columns]
-            grid_left_out = None if grid_left_out is None else grid_left_out[:, rows, columns]
-            grid_motion = grid_motion.conjugate(np.array([[1.0, 0, columns.start], [0, 1.0, rows.start], [0, 0, 1]]))
-        result = _solve_grid(grid_frames, grid_left_out, grid_motion, burst.saturation, solver, progress, grid.name,
-                             exposures=exposures[used])
-        grid_k, grid_confidence = result.k, result.confidence
-        if regions is not None:
-            grid_k, grid_confidence = np.ones_like(grid.gather(k)), np.zeros_like(grid.gather(confidence))
-            grid_k[rows, columns], grid_confidence[rows, columns] = result.k, result.confidence
-        grid.scatter(k, grid_k)
-        grid.scatter(confidence, grid_confidence)
-        solved.update({name: PlaneReport(solver.method, grid.name, result.stats) for name in grid.positions})
-    reports = {}
-    for name, pick, _ in plane_views(burst.cfa, burst.channels):  # the gauge and the FPN model, plane by plane
-        report, structured = solved[name], False
-        kp = pick(k)
-        if solver.method == "accurate":
-            model = select_model(kp, pick(confidence), force=(models or {}).get(name) or solver.fpn_model)
-            report = dataclasses.replace(report, fpn_model=model.chosen, fpn_model_aic=model.scores,
-                                         input_fpn_percent=model.split)
-            kp, structured = model.k, model.chosen not in ("pixel", "none")
-        result = physical(GainResult(kp, pick(confidence)), solver.gain_range, structured)
-        pick(k)[...] = result.k
-        pick(confidence)[...] = result.confidence
-        reports[name] = report
-    return k, confidence, reports
-
-
-#: Side (px of each grid) of the central region the hold-out check fits again without the reference:
-#: enough blocks for a standard error of the ratio near 1 % (256 blocks of 16 px), at a small cost
-#: on large frames (a 12 MP mosaic's planes are 2000 px wide).
-CHECK_SIDE = 256
-#: The hold-out check keeps a plane's estimate only where its residual ratio is below 1 by this many
-#: standard errors (one-sided, about 2 % of estimates that do not help would pass by chance).
-CHECK_Z = 2.0
-
-
-def _check(burst, frames, excluded, exposures, n_fit, in_frame, solver: _Solver, reports, progress, held_out: str,
-           k, confidence):
-    """The hold-out check (:mod:`solve.holdout`) of the map ``k`` (``confidence``) of every grid on the
-    frame named ``held_out``, and the grids it rejects.
-
-    k is fitted again on the central :data:`CHECK_SIDE` px of each grid, from the fitted frames
-    without the reference and with each plane's FPN model as chosen, so that neither frame the
-    check compares is in it."""
-    grids = _grids(burst, frames, solver.method)
-    regions = {}
-    for grid in grids:
-        h, w = grid.gather(frames[0]).shape
-        y0, x0 = max(0, (h - CHECK_SIDE) // 2), max(0, (w - CHECK_SIDE) // 2)
-        regions[grid.name] = (slice(y0, min(h, y0 + CHECK_SIDE)), slice(x0, min(w, x0 + CHECK_SIDE)))
-    k_check, confidence_check, _ = _solve_planes(
-        burst, frames, excluded, exposures, slice(1, n_fit), in_frame, solver, progress, regions=regions,
-        models={name: p.fpn_model for name, p in reports.items()})
-    checks = holdout_checks(frames, excluded, exposures, in_frame, k_check, grids=grids, saturation=burst.saturation,
-                            regions=regions, disagreement=_disagreement(k_check, confidence_check, k, confidence,
-                                                                        calibrated=solver.method == "accurate"))
-    failed = [grid for grid in grids if not checks[grid.name].passed(CHECK_Z)]
-    every = pooled(checks.values())
-    planes = {name: PlaneCheck(c.ratio, c.standard_error, c.passed(CHECK_Z), c.left_out) for name, c in checks.items()}
-    return Holdout(held_out, every.ratio, len(failed) < len(grids), every.standard_error, planes), failed
-
-
-def _disagreement(k_check, confidence_check, k, confidence, *, calibrated: bool) -> np.ndarray:
-    """``(k_check - k)^2``, in the two maps' combined variance where their confidence is a standard
-    error (``calibrated``; the paper's block solver has none); 0 where either is unestimated."""
-    both = (confidence_check > 0) & (confidence > 0)
-    squared = np.where(both, k_check - k, np.float32(0)) ** 2
-    if calibrated:
-        variance = sigma_from_confidence(np.where(both, confidence_check, 1)) ** 2 \
-            + sigma_from_confidence(np.where(both, confidence, 1)) ** 2
-        squared = np.where(both, squared / np.maximum(variance, np.float32(1e-12)), np.float32(0))
-    return squared
-
-
-def _rejection(holdout: Holdout, failed) -> str:
-    """The warning of planes the hold-out check rejected: what was written, why, and what would help."""
-    which = "the estimate" if len(failed) == len(holdout.planes) else "the " + ", ".join(g.name for g in failed)
-    ratios = ", ".join(f"{g.name} {holdout.planes[g.name].residual_ratio:.3f} +- "
-                       f"{holdout.planes[g.name].standard_error:.3f}" for g in failed)
-    return (f"the hold-out frame does not confirm {which} (residual ratio with k over without: {ratios}; a "
-            f"correction is kept only below 1 by {CHECK_Z:g} standard errors), so k = 1 (no correction) was written "
-            f"there: the burst is too noisy or too aliased for its gain pattern; more frames, more light or more "
-            f"motion would help")
-
-
-def _solve_grid(frames, excluded, motion, saturation, solver: _Solver, progress, name,
-                exposures=None) -> GainResult:
-    update = progress(f"solve {name}", 0) if progress else None
-    if solver.method == "paper":
-        if excluded is not None:  # the published form takes zeroed pixels as missing
-            frames = np.where(excluded, np.float32(0), frames)
-        if exposures is not None and np.any(exposures != 1.0):  # clipped pixels marked missing before scaling
-            if saturation is not None:
-                frames = np.where(frames >= saturation, np.float32(0), frames)
-            frames = frames / np.asarray(exposures, np.float32)[:, None, None]
-        region = (0, 0) + frames.shape[1:]
-        positions = np.stack([warp_positions(motion.pair(0, t, region), frames.shape[1:])
-                              for t in range(1, len(frames))])
-        return solve_paper(frames, positions, block_size=solver.block_size, options=solver.paper,
-                           saturation=saturation, workers=solver.workers, progress=update, executor=solver.executor)
-    return solve_accurate(frames, motion, options=solver.accurate, saturation=saturation, excluded=excluded,
-                          exposures=exposures, workers=solver.workers, progress=update, executor=solver.executor)
 
 
 def _versions() -> dict:

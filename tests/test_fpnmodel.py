@@ -5,7 +5,8 @@ from gainfpn_cli import metrics
 from gainfpn_cli.sim.sensor import PRESETS, with_overrides
 from gainfpn_cli.sim.simulate import simulate_burst
 from gainfpn_cli.solve.accurate import solve_accurate
-from gainfpn_cli.solve.fpnmodel import MODELS, pixel_prior_variance, select_model, structured_parts
+from gainfpn_cli.solve.fpnmodel import MODELS, Halves, calibrate, pixel_prior_variance, select_model, structured_parts
+from gainfpn_cli.solve.result import sigma_from_confidence
 
 SIGMA = 0.005  # standard error of every synthetic k
 
@@ -143,3 +144,36 @@ def test_end_to_end_column_sensor_gets_a_column_model():
     mask = (result.confidence > 0) & metrics.interior_mask(frames.shape[1:], 8)
     assert metrics.residual_fpn_percent(model.k, burst.gain, mask) < metrics.residual_fpn_percent(
         result.k, burst.gain, mask)
+
+
+def _halves(rng, *, pixel=0.02, factor=2.0, shape=(160, 200)):
+    """A full fit and two halves of a pixel-FPN map whose k errors are ``factor`` times the
+    predicted sigma_k (which varies 4x over the map); the full fit's error is the halves' mean."""
+    sigma = np.geomspace(0.002, 0.008, shape[1])[None, :] * np.ones(shape)
+    truth = 1 + pixel * rng.standard_normal(shape)
+    e_a, e_b = (factor * np.sqrt(2) * sigma * rng.standard_normal(shape) for _ in range(2))
+    confidence = 1 / (1 + (sigma / 0.01) ** 2)
+    ones = np.ones(shape)
+    return truth, truth + (e_a + e_b) / 2, confidence, Halves(truth + e_a, ones, truth + e_b, ones)
+
+
+def test_two_halves_measure_the_error_of_k_and_the_pixel_fpn():
+    truth, k, confidence, halves = _halves(np.random.default_rng(3))
+    sigma = sigma_from_confidence(confidence)
+    calibration = calibrate(k, sigma, halves, np.ones(k.shape), confidence > 0)
+    np.testing.assert_allclose(calibration.factor, 2.0, rtol=0.1)  # every decile's
+    assert np.sqrt(calibration.prior) == pytest.approx(0.02, rel=0.03)
+    assert calibrate(k[:50, :50], sigma[:50, :50], Halves(*(m[:50, :50] for m in vars(halves).values())),
+                     np.ones((50, 50)), confidence[:50, :50] > 0) is None  # 2500 px: too few to measure
+
+
+def test_the_pixel_model_shrinks_by_the_measured_error():
+    # sigma_k 2x too small: Paule-Mandel takes the missed noise for pixel FPN; the halves do not,
+    # the written sigma_k predicts the written k's error and the map is closer to the truth
+    truth, k, confidence, halves = _halves(np.random.default_rng(4), pixel=0.01)
+    plain, measured = select_model(k, confidence), select_model(k, confidence, halves=halves)
+    assert plain.split["pixel"] > 1.2 and measured.split["pixel"] == pytest.approx(1.0, rel=0.05)
+    assert plain.sigma is None and measured.chosen == "pixel"
+    error = measured.k - truth
+    assert np.sqrt(np.mean(error**2)) / np.sqrt(np.mean(measured.sigma**2)) == pytest.approx(1.0, abs=0.1)
+    assert np.std(measured.k - truth) < np.std(plain.k - truth)

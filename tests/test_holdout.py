@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from gainfpn_cli import api, pipeline
+from gainfpn_cli import api, solving
 from gainfpn_cli.geometry.planes import solve_grids
 from gainfpn_cli.geometry.warps import GlobalWarp, LayeredWarp
 from gainfpn_cli.sim.sensor import PRESETS
@@ -62,7 +62,7 @@ def test_a_plane_the_check_rejects_is_written_as_k_1_and_the_others_are_kept(mon
     # a solver that spoils the red plane (10 % random gains): only red falls back, with a warning
     b = simulate_burst(shape=(240, 320), n_frames=8, sensor=PRESETS["raw12"], exposure=0.5, seed=100)
     frames = b.frames.astype(np.float32) - PRESETS["raw12"].black_level
-    solve = pipeline._solve_grid
+    solve = solving.solve_grid
 
     def spoil_red(frames_, excluded, motion, saturation, solver, progress, name, exposures=None):
         result = solve(frames_, excluded, motion, saturation, solver, progress, name, exposures=exposures)
@@ -71,7 +71,7 @@ def test_a_plane_the_check_rejects_is_written_as_k_1_and_the_others_are_kept(mon
             result = GainResult(result.k * (1 + noise), result.confidence, result.stats)
         return result
 
-    monkeypatch.setattr(pipeline, "_solve_grid", spoil_red)
+    monkeypatch.setattr(solving, "solve_grid", spoil_red)
     saturation = PRESETS["raw12"].white_level - PRESETS["raw12"].black_level
     result = api.estimate(frames, cfa="RGGB", saturation=saturation, **{"solver.workers": 1})
     holdout = result.report.holdout

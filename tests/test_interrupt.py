@@ -25,17 +25,17 @@ DRIVER = textwrap.dedent(
     """
     import sys, time
     from pathlib import Path
-    import gainfpn_cli.pipeline as pipeline
+    import gainfpn_cli.solving as solving
     import gainfpn_cli.outputs as outputs
     from gainfpn_cli.cli import main
 
     stage, ready = sys.argv[1], Path(sys.argv[2])
     if stage == "solve":
-        solve = pipeline._solve_planes
+        solve = solving.solve_planes
         def announced(*args, **kwargs):
             ready.touch()
             return solve(*args, **kwargs)
-        pipeline._solve_planes = announced
+        solving.solve_planes = announced
     else:
         write = outputs.write_exr
         def slow(path, *args, **kwargs):

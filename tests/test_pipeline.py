@@ -83,7 +83,7 @@ def test_outputs_are_complete_and_documented(exr_burst, tmp_path):
 def test_holdout_rejects_an_estimate_that_does_not_help(exr_burst, monkeypatch):
     # a solver that returns a harmful map (10 % random gains) must be caught on
     # the held-out frame: k = 1 is written, with a warning and the ratio
-    import gainfpn_cli.pipeline as pipeline
+    import gainfpn_cli.solving as solving
 
     folder, _ = exr_burst
     cfg = load_config(overrides={"solver.workers": 1})
@@ -91,9 +91,9 @@ def test_holdout_rejects_an_estimate_that_does_not_help(exr_burst, monkeypatch):
 
     def harmful(burst_, frames, excluded, exposures, used, H, cfg_, progress, **kwargs):  # the check's fit too
         k = 1 + 0.1 * np.random.default_rng(0).standard_normal(frames.shape[1:])
-        return k, np.ones(frames.shape[1:]), {"Y": PlaneReport("harmful", "Y", PaperStats(1, 0, 0, 0, 0, 0))}
+        return k, np.ones(frames.shape[1:]), {"Y": PlaneReport("harmful", "Y", PaperStats(1, 0, 0, 0, 0, 0))}, {}
 
-    monkeypatch.setattr(pipeline, "_solve_planes", harmful)
+    monkeypatch.setattr(solving, "solve_planes", harmful)
     result = estimate(burst, cfg)
     assert result.report.holdout.passed is False and result.report.holdout.residual_ratio > 1
     assert np.all(result.k == 1.0) and np.all(result.confidence == 0.0)

@@ -22,17 +22,17 @@ CALLER = textwrap.dedent(
     import json, sys
     import numpy as np
     from threadpoolctl import threadpool_info
-    from gainfpn_cli import pipeline
+    from gainfpn_cli import pipeline, solving
     from gainfpn_cli.config import load_config
 
     seen = []
-    solve = pipeline.solve_accurate
+    solve = solving.solve_accurate
 
     def spy(*args, **kwargs):  # the BLAS threads the solver runs with
         seen.append(max((p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"), default=1))
         return solve(*args, **kwargs)
 
-    pipeline.solve_accurate = spy
+    solving.solve_accurate = spy
     cfg = load_config(overrides={"solver.workers": 1})
     result = pipeline.estimate(pipeline.load_burst([sys.argv[1]], cfg), cfg)
     np.save(sys.argv[2], result.k)

@@ -18,7 +18,7 @@ import sys
 
 import numpy as np
 
-from gainfpn_cli import api, pipeline
+from gainfpn_cli import api, solving
 from gainfpn_cli.geometry.planes import solve_grids
 from gainfpn_cli.geometry.warps import GlobalWarp
 from gainfpn_cli.sim.motion import Shake
@@ -82,7 +82,7 @@ def short_bursts():
 
 def rates(cases=pool):
     unguarded = {}
-    solve_planes = pipeline._solve_planes
+    solve_planes = solving.solve_planes
 
     def keep(*args, **kwargs):  # the map before the check
         out = solve_planes(*args, **kwargs)
@@ -90,7 +90,7 @@ def rates(cases=pool):
             unguarded["k"] = out[0].copy()
         return out
 
-    pipeline._solve_planes = keep
+    solving.solve_planes = keep
     rows = []
     for case in cases():
         s = case["sensor"]

@@ -16,7 +16,15 @@ structured. The choice minimises Akaike's criterion
 
 ``sigma_k`` the solver's predicted standard error of each k and ``p`` the
 parameters beyond the overall scale (the gauge fixes it for every model):
-0, 1, W - 1, W and N - 1 (every pixel's own k, which fits exactly). AIC
+0, 1, W - 1, W and N - 1 (every pixel's own k, which fits exactly). With
+``sigma_k`` calibrated (below), the pixel model is scored as written (shrunk):
+its misfit ``sum ((1 - w) d / sigma_k)^2`` and the best structured model's
+parameters plus one for the prior's variance and the effective number of its
+own, ``sum w`` (the trace of the shrinkage; Hastie & Tibshirani 1990), so a
+pixel FPN the noise hides adds next to nothing and loses by the prior's one.
+(With the solver's sigma_k, too small on most bursts, the prior takes up the
+noise it misses and that score would pick the pixel model on a column-FPN
+sensor.) AIC
 estimates the prediction error on held-out data (it is asymptotically
 leave-one-out cross-validation, Stone 1977), which is what matters when the
 map corrects other captures.
@@ -28,7 +36,16 @@ its posterior mean under a normal prior of the sensor's pixel FPN, ``w d``
 with ``w = s^2 / (s^2 + sigma_k^2)`` (empirical Bayes; ``s^2`` by the
 Paule-Mandel equation ``sum d^2 / (s^2 + sigma_k^2) = N``, each term of which
 expects 1). ``s`` comes out as the sensor's pixel FPN plus whatever the
-solver's ``sigma_k`` misses. Measured (MSE reduction without -> with the
+solver's ``sigma_k`` misses.
+
+Given two more fits on disjoint halves of the frames (:class:`Halves`), both
+are measured instead (:func:`calibrate`): the halves' errors are nearly
+independent, so ``s^2`` is the covariance of their deviations (noise does not
+enter it), and the full fit's error variance in each decile of ``sigma_k`` is
+``-mean((k_a - k)(k_b - k))`` (a Hausman-type difference: exact when k is the
+halves' average, and needing no truth); ``sigma_k`` is scaled by the measured
+factor. What it cannot see is an error the two halves share (interpolating a
+sharp scene); the measured calibration is in docs/limits.md ("Confidence"). Measured (MSE reduction without -> with the
 shrinkage; 320x240x8, motion estimated, all 8 frames fitted): dead leaves
 11.7x -> 13.8x; with a 1 px distortion 9.1x -> 13.0x; a raw12 CFA burst of
 the procedural scene 0.7x -> 1.3x; a procedural scene 23.2x -> 23.8x.
@@ -62,12 +79,79 @@ class FPNModel:
         Estimated input gain FPN in percent: ``pixel``, ``column``, ``row``
         (spread of the gains ``1 / k`` attributed to each part; the pixel
         part is the prior's ``s``: the spread of k less its estimation noise).
+    calibration : Calibration or None
+        What two halves of the frames measured (or were given), if anything.
+    sigma : ndarray of float32 or None
+        With a calibration, the predicted standard error of each written k:
+        the calibrated ``sigma_k`` shrunk with k (``sqrt(w) sigma_k``) by the
+        pixel model, as it is under a structured one (an upper bound there).
     """
 
     k: np.ndarray
     chosen: str
     scores: dict = field(default_factory=dict)
     split: dict = field(default_factory=dict)
+    calibration: Calibration | None = None
+    sigma: np.ndarray | None = None  # with a calibration: the predicted standard error of k
+
+
+@dataclass(frozen=True)
+class Halves:
+    """k fitted again on two disjoint halves of the frames (before any FPN model), on part of the
+    plane: confidence 0 where a half has no estimate."""
+
+    k_a: np.ndarray
+    confidence_a: np.ndarray
+    k_b: np.ndarray
+    confidence_b: np.ndarray
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """What two halves measured (:func:`calibrate`): the factor that scales ``sigma_k`` to k's
+    actual error, at the RMS ``sigma_k`` of each decile (between them, interpolated in
+    ``log sigma_k``; beyond them, the end ones), and the pixel FPN prior ``s^2``."""
+
+    log_sigma: np.ndarray
+    factor: np.ndarray
+    prior: float
+
+    def sigma(self, sigma: np.ndarray) -> np.ndarray:
+        """``sigma_k`` (the solver's) scaled to k's actual error; inf stays inf."""
+        sigma = np.asarray(sigma, np.float32)
+        finite = np.isfinite(sigma) & (sigma > 0)
+        scale = np.interp(np.log(np.where(finite, sigma, 1)), self.log_sigma, self.factor).astype(np.float32)
+        return np.where(finite, sigma * scale, sigma)
+
+
+#: Fewest pixels both halves and the full fit estimated for :func:`calibrate` to measure anything:
+#: each of its 10 deciles then has 1000, which give the decile's factor to about 5 %.
+MIN_SPLIT_PIXELS = 10_000
+#: Smallest factor :func:`calibrate` gives ``sigma_k``: a decile whose measured error variance is
+#: 0 or below (a chance of its own noise) must not make k certain.
+MIN_FACTOR = 0.1
+
+
+def calibrate(k: np.ndarray, sigma: np.ndarray, halves: Halves, base: np.ndarray,
+              est: np.ndarray) -> Calibration | None:
+    """The :class:`Calibration` that ``halves`` measure of the full fit ``k`` (``sigma`` its
+    solver's ``sigma_k``), with ``base`` the structured model the pixel FPN deviates from; None
+    where fewer than :data:`MIN_SPLIT_PIXELS` pixels are seen by all three fits."""
+    both = est & (halves.confidence_a > 0) & (halves.confidence_b > 0) & np.isfinite(sigma)
+    if both.sum() < MIN_SPLIT_PIXELS:
+        return None
+    s = sigma[both].astype(np.float64)
+    k_full, k_a, k_b = (np.asarray(m, np.float64)[both] for m in (k, halves.k_a, halves.k_b))
+    d_a, d_b = k_a - base[both], k_b - base[both]
+    prior = max(float(np.mean(d_a * d_b) - d_a.mean() * d_b.mean()), 0.0)
+    order = np.argsort(s)
+    log_sigma, factor = [], []
+    for part in np.array_split(order, 10):
+        square = float(np.mean(s[part] ** 2))
+        error = -float(np.mean((k_a[part] - k_full[part]) * (k_b[part] - k_full[part])))
+        log_sigma.append(0.5 * np.log(square))
+        factor.append(max(np.sqrt(max(error, 0.0) / square), MIN_FACTOR))
+    return Calibration(np.array(log_sigma), np.array(factor), prior)
 
 
 @dataclass(frozen=True)
@@ -129,7 +213,8 @@ def _level(shape: np.ndarray, sums: _Sums) -> np.ndarray:
     return shape * (float(np.sum(shape * sums.wk)) / den if den > 0 else 1.0)
 
 
-def select_model(k: np.ndarray, confidence: np.ndarray, *, force: str | None = None) -> FPNModel:
+def select_model(k: np.ndarray, confidence: np.ndarray, *, force: str | None = None,
+                 halves: Halves | None = None, calibration: Calibration | None = None) -> FPNModel:
     """Pick the model by AIC (or ``force`` one) and report the FPN split.
 
     Parameters
@@ -139,6 +224,11 @@ def select_model(k: np.ndarray, confidence: np.ndarray, *, force: str | None = N
         (:func:`solve.result.sigma_from_confidence` gives ``sigma_k`` back).
     force : str, optional
         One of :data:`MODELS` instead of the AIC choice.
+    halves : Halves, optional
+        Fits on two halves of the frames: ``sigma_k`` and the prior are measured with them
+        (:func:`calibrate`).
+    calibration : Calibration, optional
+        One measured before (for another fit of the same plane), used as it is.
     """
     if force is not None and force not in MODELS:
         raise ValueError(f"force must be one of {', '.join(MODELS)}, got {force!r}")
@@ -147,36 +237,31 @@ def select_model(k: np.ndarray, confidence: np.ndarray, *, force: str | None = N
     confidence = np.asarray(confidence, np.float32)
     est = confidence > 0
     sigma = np.maximum(sigma_from_confidence(confidence), 1e-6).astype(np.float32)
-    weight = np.where(est, np.float32(1) / sigma**2, np.float32(0))
-    sums = _Sums.of(k, weight)
-    col, row = _structured(sums)
-    w = k.shape[1]
-    wk = sums.wk
-    ratio = lambda num, den: np.divide(num, den, out=np.ones_like(num), where=den > 0)  # noqa: E731 (1 where unseen)
-    fits = {  # each a gain per (row parity, column); parameters beyond the overall scale the gauge fixes
-        "none": (np.full((1, 1), ratio(wk.sum(keepdims=True), sums.w.sum(keepdims=True))[0, 0]), 0.0),
-        "row": (ratio(wk.sum(axis=1), sums.w.sum(axis=1))[:, None], 1.0),
-        "column": (ratio(wk.sum(axis=0), sums.w.sum(axis=0))[None, :], w - 1.0),
-        "column+row": (_level(row[:, None] * col[None, :], sums), float(w)),
-    }
-    scores = {name: sums.chi2(fit) + 2.0 * params for name, (fit, params) in fits.items()}
-    # is there pixel FPN at all: every pixel's own k against the best structured model
-    scores["pixel"] = 2.0 * max(int(est.sum()) - 1, 0)
-    parity = np.arange(k.shape[0]) % 2
-
-    def full(fit: np.ndarray) -> np.ndarray:
-        return np.broadcast_to(fit.astype(np.float32), (2, w))[parity]
-
-    base = full(fits[min(fits, key=lambda m: scores[m])][0])
+    fit = _Fits.of(k, sigma, est)
+    if halves is not None and calibration is None:  # measured about the solver's own sigma_k's base
+        calibration = calibrate(k, sigma, halves, fit.base, est)
+    if calibration is not None:
+        sigma = calibration.sigma(sigma)
+        fit = _Fits.of(k, sigma, est)
+    deviation = np.where(est, k - fit.base, np.float32(0))
+    prior = pixel_prior_variance(deviation[est], sigma[est]) if calibration is None else calibration.prior
+    shrink = np.where(est, np.float32(prior) / (np.float32(prior) + sigma**2), np.float32(0))
+    scores = {**fit.scores, "pixel": 2.0 * max(int(est.sum()) - 1, 0)}  # every pixel's own k fits exactly
+    if calibration is not None:
+        # the pixel model as written (shrunk): its misfit, and the base's parameters, the prior's variance
+        # and the effective number of its own (the trace of the shrinkage, sum w: Hastie & Tibshirani 1990)
+        misfit = float(np.sum(np.where(est, ((1 - shrink) * deviation / sigma) ** 2, 0), dtype=np.float64))
+        scores["pixel"] = misfit + 2.0 * (fit.fits[fit.best][1] + 1.0 + float(np.sum(shrink, dtype=np.float64)))
     chosen = force or min(MODELS, key=lambda m: scores[m])
-    deviation = np.where(est, k - base, np.float32(0))
-    prior = pixel_prior_variance(deviation[est], sigma[est])
+    written_sigma = None
     if chosen == "pixel":
-        shrink = np.float32(prior) / (np.float32(prior) + sigma**2)
-        model_k = np.where(est, base + shrink * deviation, np.float32(1))
-        del shrink
+        model_k = np.where(est, fit.base + shrink * deviation, np.float32(1))
+        if calibration is not None:
+            written_sigma = np.where(est, np.sqrt(shrink) * np.where(est, sigma, 0), np.float32(np.inf))
     else:  # a structured model knows every pixel of a column / row parity it has seen
-        model_k = full(fits[chosen][0])
+        model_k = fit.full(chosen)
+        written_sigma = None if calibration is None else sigma
+    del shrink
     del deviation
     if est.any():
         regauge(model_k, est)
@@ -184,10 +269,51 @@ def select_model(k: np.ndarray, confidence: np.ndarray, *, force: str | None = N
         model_k[~est] = 1.0
     split = {
         "pixel": 100.0 * float(np.sqrt(prior)),
-        "column": 100.0 * robust_spread(1.0 / col[sums.w.sum(axis=0) > 0]) if est.any() else 0.0,
-        "row": 100.0 * abs(row[0] - row[1]) / 2.0,
+        "column": 100.0 * robust_spread(1.0 / fit.col[fit.sums.w.sum(axis=0) > 0]) if est.any() else 0.0,
+        "row": 100.0 * abs(fit.row[0] - fit.row[1]) / 2.0,
     }
-    return FPNModel(model_k.astype(np.float32), chosen, scores, split)
+    return FPNModel(model_k.astype(np.float32), chosen, scores, split, calibration, written_sigma)
+
+
+@dataclass(frozen=True)
+class _Fits:
+    """The structured models fitted to k with weights ``1 / sigma^2``: each a gain per (row parity,
+    column) with its parameters beyond the overall scale (which the gauge fixes), their AIC, the
+    column and row parts of ``column+row``, and the best one's map (``base``)."""
+
+    sums: _Sums
+    fits: dict
+    scores: dict
+    col: np.ndarray
+    row: np.ndarray
+    best: str
+    base: np.ndarray
+
+    @classmethod
+    def of(cls, k: np.ndarray, sigma: np.ndarray, est: np.ndarray) -> "_Fits":
+        weight = np.where(est, np.float32(1) / sigma**2, np.float32(0))
+        sums = _Sums.of(k, weight)
+        del weight
+        col, row = _structured(sums)
+        w = k.shape[1]
+        wk = sums.wk
+        ratio = lambda num, den: np.divide(num, den, out=np.ones_like(num), where=den > 0)  # noqa: E731 (1 where unseen)
+        fits = {
+            "none": (np.full((1, 1), ratio(wk.sum(keepdims=True), sums.w.sum(keepdims=True))[0, 0]), 0.0),
+            "row": (ratio(wk.sum(axis=1), sums.w.sum(axis=1))[:, None], 1.0),
+            "column": (ratio(wk.sum(axis=0), sums.w.sum(axis=0))[None, :], w - 1.0),
+            "column+row": (_level(row[:, None] * col[None, :], sums), float(w)),
+        }
+        scores = {name: sums.chi2(fit) + 2.0 * params for name, (fit, params) in fits.items()}
+        parity = np.arange(k.shape[0]) % 2
+        best = min(fits, key=lambda m: scores[m])
+        base = np.broadcast_to(fits[best][0].astype(np.float32), (2, w))[parity]
+        return cls(sums, fits, scores, col, row, best, base)
+
+    def full(self, model: str) -> np.ndarray:
+        """The structured ``model``'s map, frame-sized."""
+        parity = np.arange(self.base.shape[0]) % 2
+        return np.broadcast_to(self.fits[model][0].astype(np.float32), (2, self.base.shape[1]))[parity]
 
 
 #: :func:`pixel_prior_variance` estimates one number: from this many pixels

@@ -85,6 +85,13 @@ def sigma_from_confidence(confidence: np.ndarray) -> np.ndarray:
     return dtype(CONFIDENCE_SCALE) * np.sqrt(ratio - dtype(1))
 
 
+def confidence_from_sigma(sigma: np.ndarray) -> np.ndarray:
+    """``1 / (1 + (sigma_k / CONFIDENCE_SCALE)^2)``: 0 where ``sigma_k`` is inf."""
+    sigma = np.asarray(sigma)
+    dtype = np.float32 if sigma.dtype == np.float32 else np.float64
+    return (dtype(1) / (dtype(1) + (sigma / dtype(CONFIDENCE_SCALE)) ** 2)).astype(dtype)
+
+
 def regauge(k: np.ndarray, est: np.ndarray, *, everywhere: bool = True) -> None:
     """The gauge, in place: divide ``k`` (over every pixel, or only ``est`` without ``everywhere``)
     by its mean over the estimated pixels ``est``, so that it is 1 there (docs/method.md section 2)."""

@@ -1,0 +1,212 @@
+"""Every plane of a burst solved: the solver chosen by the config, the FPN model and its calibration
+on two halves of the frames, and the hold-out check (:mod:`solve.holdout`).
+
+:mod:`pipeline` runs motion and hands the frames, the masks and the warps here.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+from .burst import LoadedBurst
+from .geometry.planes import plane_views, solve_grids
+from .geometry.resample import positions as warp_positions
+from .report import Holdout, PlaneCheck, PlaneReport
+from .solve.accurate import AccurateOptions, solve_accurate
+from .solve.blocks import solve_paper
+from .solve.fpnmodel import Halves, select_model
+from .solve.holdout import holdout_checks, pooled
+from .solve.kkt import SolveOptions
+from .solve.result import GainResult, confidence_from_sigma, physical, sigma_from_confidence
+
+
+@dataclass(frozen=True)
+class Solver:
+    """The solver section of the config, unpacked once per estimate into the solvers' options."""
+
+    method: str
+    paper: SolveOptions
+    block_size: int
+    accurate: AccurateOptions
+    fpn_model: str | None  # None: chosen by AIC
+    gain_range: tuple[float, float]
+    workers: int
+    executor: object = None
+
+    @classmethod
+    def from_config(cls, s, *, mosaic: bool, executor=None) -> "Solver":
+        accurate = AccurateOptions(kernel=s.interpolation, anchors=s.anchors, partners=s.partners, rtol=s.rtol,
+                                   gauge_sigma=s.gauge_sigma, tile=s.tile, robust_rounds=s.robust_rounds,
+                                   gain_range=s.gain_range,
+                                   phase_weights=s.phase_weights == "all" or (s.phase_weights == "auto" and mosaic))
+        return cls(s.method, SolveOptions(lam=s.lam, max_condition=s.max_condition, k_range=s.gain_range),
+                   s.block_size, accurate, None if s.fpn_model == "auto" else s.fpn_model, s.gain_range, s.workers,
+                   executor)
+
+
+def grids_of(burst: LoadedBurst, frames: np.ndarray, method: str) -> list:
+    """The grids the solver runs on (the accurate solver takes a CFA's two greens together)."""
+    return list(solve_grids(burst.cfa, burst.channels, frames.shape[1:3], greens_together=method == "accurate"))
+
+
+def solve_planes(burst, frames, excluded, exposures, used: slice, in_frame, solver: Solver, progress, *,
+                  regions: dict | None = None, models: dict | None = None, split: bool = False,
+                  calibrations: dict | None = None):
+    """k and confidence of every plane from the frames ``used``, with the FPN model and the gauge,
+    and each plane's report and calibration (:class:`solve.fpnmodel.Calibration`, or None).
+
+    ``regions`` (grid name -> (rows, columns) slices) solves only there (k = 1 and confidence 0
+    elsewhere); ``models`` (plane name -> FPN model) forces each plane's model; ``split`` measures
+    each plane's sigma_k and pixel FPN with two more fits, on the even and the odd frames of ``used``
+    (on :func:`central` regions, and with :data:`MIN_SPLIT_FRAMES` or more), and ``calibrations``
+    (plane name -> Calibration) gives them as measured before."""
+    k, confidence, solved = solve_raw(burst, frames, excluded, exposures, used, in_frame, solver, progress,
+                                       regions=regions)
+    halves = None
+    if split and solver.method == "accurate" and len(range(len(frames))[used]) >= MIN_SPLIT_FRAMES:
+        middle = central(burst, frames, solver)
+        halves = [solve_raw(burst, frames, excluded, exposures, slice(used.start + offset, used.stop, 2), in_frame,
+                            solver, progress, regions=middle)[:2] for offset in (0, 1)]
+    reports, calibrated = {}, {}
+    for name, pick, _ in plane_views(burst.cfa, burst.channels):  # the gauge and the FPN model, plane by plane
+        report, structured, calibration = solved[name], False, None
+        kp = pick(k)
+        if solver.method == "accurate":
+            plane_halves = None if halves is None else Halves(*(pick(m) for half in halves for m in half))
+            model = select_model(kp, pick(confidence), force=(models or {}).get(name) or solver.fpn_model,
+                                 halves=plane_halves, calibration=(calibrations or {}).get(name))
+            report = dataclasses.replace(report, fpn_model=model.chosen, fpn_model_aic=model.scores,
+                                         input_fpn_percent=model.split, confidence_calibrated=model.sigma is not None)
+            kp, structured, calibration = model.k, model.chosen not in ("pixel", "none"), model.calibration
+            if model.sigma is not None:
+                pick(confidence)[...] = np.where(pick(confidence) > 0, confidence_from_sigma(model.sigma), 0)
+        result = physical(GainResult(kp, pick(confidence)), solver.gain_range, structured)
+        pick(k)[...] = result.k
+        pick(confidence)[...] = result.confidence
+        reports[name], calibrated[name] = report, calibration
+    return k, confidence, reports, calibrated
+
+
+#: Fewest frames :func:`solve_planes` splits into halves to measure sigma_k and the pixel FPN: halves
+#: of 2 frames have errors that are far from independent (measured: the pixel FPN 2.5-6 % against a
+#: true 1 % at 5 frames), halves of 3 nearly so.
+MIN_SPLIT_FRAMES = 6
+
+
+def solve_raw(burst, frames, excluded, exposures, used: slice, in_frame, solver: Solver, progress, *,
+               regions: dict | None = None):
+    """Every grid's k and confidence as the solver gives them (no FPN model), frame-shaped, and each
+    plane's report; ``regions`` as for :func:`solve_planes`."""
+    k = np.ones(frames.shape[1:], np.float32)
+    confidence = np.zeros(frames.shape[1:], np.float32)
+    fit = frames[used]  # a slice: a view
+    left_out = None if excluded is None else np.broadcast_to(excluded[used, ..., None], fit.shape)  # every channel
+    motion = in_frame.select(range(len(frames))[used])
+    solved = {}
+    for grid in grids_of(burst, frames, solver.method):
+        grid_frames, grid_left_out, grid_motion = grid.gather(fit), None, motion.conjugate(grid.S)
+        if left_out is not None:
+            grid_left_out = grid.gather(left_out)
+        if regions is not None:
+            rows, columns = regions[grid.name]
+            grid_frames = grid_frames[:, rows, columns]
+            grid_left_out = None if grid_left_out is None else grid_left_out[:, rows, columns]
+            grid_motion = grid_motion.conjugate(np.array([[1.0, 0, columns.start], [0, 1.0, rows.start], [0, 0, 1]]))
+        result = solve_grid(grid_frames, grid_left_out, grid_motion, burst.saturation, solver, progress, grid.name,
+                             exposures=exposures[used])
+        grid_k, grid_confidence = result.k, result.confidence
+        if regions is not None:
+            grid_k, grid_confidence = np.ones_like(grid.gather(k)), np.zeros_like(grid.gather(confidence))
+            grid_k[rows, columns], grid_confidence[rows, columns] = result.k, result.confidence
+        grid.scatter(k, grid_k)
+        grid.scatter(confidence, grid_confidence)
+        solved.update({name: PlaneReport(solver.method, grid.name, result.stats) for name in grid.positions})
+    return k, confidence, solved
+
+
+def central(burst, frames, solver: Solver) -> dict:
+    """The central :data:`CHECK_SIDE` px of every grid, as (rows, columns) slices by grid name."""
+    regions = {}
+    for grid in grids_of(burst, frames, solver.method):
+        h, w = grid.gather(frames[0]).shape
+        y0, x0 = max(0, (h - CHECK_SIDE) // 2), max(0, (w - CHECK_SIDE) // 2)
+        regions[grid.name] = (slice(y0, min(h, y0 + CHECK_SIDE)), slice(x0, min(w, x0 + CHECK_SIDE)))
+    return regions
+
+
+#: Side (px of each grid) of the central region the hold-out check fits again without the reference:
+#: enough blocks for a standard error of the ratio near 1 % (256 blocks of 16 px), at a small cost
+#: on large frames (a 12 MP mosaic's planes are 2000 px wide).
+CHECK_SIDE = 256
+#: The hold-out check keeps a plane's estimate only where its residual ratio is below 1 by this many
+#: standard errors (one-sided, about 2 % of estimates that do not help would pass by chance).
+CHECK_Z = 2.0
+
+
+def check(burst, frames, excluded, exposures, n_fit, in_frame, solver: Solver, reports, calibrations, progress,
+           held_out: str, k, confidence):
+    """The hold-out check (:mod:`solve.holdout`) of the map ``k`` (``confidence``) of every grid on the
+    frame named ``held_out``, and the grids it rejects.
+
+    k is fitted again on the central :data:`CHECK_SIDE` px of each grid, from the fitted frames
+    without the reference and with each plane's FPN model and calibration as for ``k``, so that
+    neither frame the check compares is in it."""
+    grids = grids_of(burst, frames, solver.method)
+    regions = central(burst, frames, solver)
+    k_check, confidence_check, _, _ = solve_planes(
+        burst, frames, excluded, exposures, slice(1, n_fit), in_frame, solver, progress, regions=regions,
+        models={name: p.fpn_model for name, p in reports.items()}, calibrations=calibrations)
+    checks = holdout_checks(frames, excluded, exposures, in_frame, k_check, grids=grids, saturation=burst.saturation,
+                            regions=regions, disagreement=disagreement(k_check, confidence_check, k, confidence,
+                                                                        calibrated=solver.method == "accurate"))
+    failed = [grid for grid in grids if not checks[grid.name].passed(CHECK_Z)]
+    every = pooled(checks.values())
+    planes = {name: PlaneCheck(c.ratio, c.standard_error, c.passed(CHECK_Z), c.left_out) for name, c in checks.items()}
+    return Holdout(held_out, every.ratio, len(failed) < len(grids), every.standard_error, planes), failed
+
+
+def disagreement(k_check, confidence_check, k, confidence, *, calibrated: bool) -> np.ndarray:
+    """``(k_check - k)^2``, in the two maps' combined variance where their confidence is a standard
+    error (``calibrated``; the paper's block solver has none); 0 where either is unestimated."""
+    both = (confidence_check > 0) & (confidence > 0)
+    squared = np.where(both, k_check - k, np.float32(0)) ** 2
+    if calibrated:
+        variance = sigma_from_confidence(np.where(both, confidence_check, 1)) ** 2 \
+            + sigma_from_confidence(np.where(both, confidence, 1)) ** 2
+        squared = np.where(both, squared / np.maximum(variance, np.float32(1e-12)), np.float32(0))
+    return squared
+
+
+def rejection(holdout: Holdout, failed) -> str:
+    """The warning of planes the hold-out check rejected: what was written, why, and what would help."""
+    which = "the estimate" if len(failed) == len(holdout.planes) else "the " + ", ".join(g.name for g in failed)
+    ratios = ", ".join(f"{g.name} {holdout.planes[g.name].residual_ratio:.3f} +- "
+                       f"{holdout.planes[g.name].standard_error:.3f}" for g in failed)
+    return (f"the hold-out frame does not confirm {which} (residual ratio with k over without: {ratios}; a "
+            f"correction is kept only below 1 by {CHECK_Z:g} standard errors), so k = 1 (no correction) was written "
+            f"there: the burst is too noisy or too aliased for its gain pattern; more frames, more light or more "
+            f"motion would help")
+
+
+def solve_grid(frames, excluded, motion, saturation, solver: Solver, progress, name,
+                exposures=None) -> GainResult:
+    update = progress(f"solve {name}", 0) if progress else None
+    if solver.method == "paper":
+        if excluded is not None:  # the published form takes zeroed pixels as missing
+            frames = np.where(excluded, np.float32(0), frames)
+        if exposures is not None and np.any(exposures != 1.0):  # clipped pixels marked missing before scaling
+            if saturation is not None:
+                frames = np.where(frames >= saturation, np.float32(0), frames)
+            frames = frames / np.asarray(exposures, np.float32)[:, None, None]
+        region = (0, 0) + frames.shape[1:]
+        positions = np.stack([warp_positions(motion.pair(0, t, region), frames.shape[1:])
+                              for t in range(1, len(frames))])
+        return solve_paper(frames, positions, block_size=solver.block_size, options=solver.paper,
+                           saturation=saturation, workers=solver.workers, progress=update, executor=solver.executor)
+    return solve_accurate(frames, motion, options=solver.accurate, saturation=saturation, excluded=excluded,
+                          exposures=exposures, workers=solver.workers, progress=update, executor=solver.executor)
+
+
