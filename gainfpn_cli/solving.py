@@ -15,7 +15,7 @@ from .burst import LoadedBurst
 from .geometry.planes import plane_views, solve_grids
 from .geometry.resample import positions as warp_positions
 from .report import Holdout, PlaneCheck, PlaneReport
-from .solve.accurate import AccurateOptions, solve_accurate
+from .solve.accurate import AccurateOptions, solve_accurate, solve_accurate_many
 from .solve.blocks import solve_paper
 from .solve.fpnmodel import Halves, select_model
 from .solve.holdout import holdout_checks, pooled
@@ -68,8 +68,9 @@ def solve_planes(burst, frames, excluded, exposures, used: slice, in_frame, solv
     halves = None
     if split and solver.method == "accurate" and len(range(len(frames))[used]) >= MIN_SPLIT_FRAMES:
         middle = central(burst, frames, solver)
-        halves = [solve_raw(burst, frames, excluded, exposures, slice(used.start + offset, used.stop, 2), in_frame,
-                            solver, progress, regions=middle)[:2] for offset in (0, 1)]
+        halves = [half[:2] for half in solve_raws(burst, frames, excluded, exposures,
+                                                   [slice(used.start + offset, used.stop, 2) for offset in (0, 1)],
+                                                   in_frame, solver, progress, regions=middle)]
     reports, calibrated = {}, {}
     for name, pick, _ in plane_views(burst.cfa, burst.channels):  # the gauge and the FPN model, plane by plane
         report, structured, calibration = solved[name], False, None
@@ -97,34 +98,52 @@ MIN_SPLIT_FRAMES = 6
 
 
 def solve_raw(burst, frames, excluded, exposures, used: slice, in_frame, solver: Solver, progress, *,
-               regions: dict | None = None):
+              regions: dict | None = None):
     """Every grid's k and confidence as the solver gives them (no FPN model), frame-shaped, and each
     plane's report; ``regions`` as for :func:`solve_planes`."""
-    k = np.ones(frames.shape[1:], np.float32)
-    confidence = np.zeros(frames.shape[1:], np.float32)
-    fit = frames[used]  # a slice: a view
-    left_out = None if excluded is None else np.broadcast_to(excluded[used, ..., None], fit.shape)  # every channel
-    motion = in_frame.select(range(len(frames))[used])
-    solved = {}
-    for grid in grids_of(burst, frames, solver.method):
-        grid_frames, grid_left_out, grid_motion = grid.gather(fit), None, motion.conjugate(grid.S)
-        if left_out is not None:
-            grid_left_out = grid.gather(left_out)
-        if regions is not None:
-            rows, columns = regions[grid.name]
-            grid_frames = grid_frames[:, rows, columns]
-            grid_left_out = None if grid_left_out is None else grid_left_out[:, rows, columns]
-            grid_motion = grid_motion.conjugate(np.array([[1.0, 0, columns.start], [0, 1.0, rows.start], [0, 0, 1]]))
-        result = solve_grid(grid_frames, grid_left_out, grid_motion, burst.saturation, solver, progress, grid.name,
-                             exposures=exposures[used])
+    return solve_raws(burst, frames, excluded, exposures, [used], in_frame, solver, progress, regions=regions)[0]
+
+
+def solve_raws(burst, frames, excluded, exposures, useds, in_frame, solver: Solver, progress, *,
+               regions: dict | None = None) -> list:
+    """:func:`solve_raw` of each of the frame slices ``useds``. With more than one, the accurate
+    solver takes all their tiles in one go, so that regions of one tile each run on every worker."""
+    jobs = []  # (which used, grid, the problem: frames, left out, motion, exposures)
+    for i, used in enumerate(useds):
+        fit = frames[used]  # a slice: a view
+        left_out = None if excluded is None else np.broadcast_to(excluded[used, ..., None], fit.shape)  # every channel
+        motion = in_frame.select(range(len(frames))[used])
+        for grid in grids_of(burst, frames, solver.method):
+            grid_frames, grid_left_out, grid_motion = grid.gather(fit), None, motion.conjugate(grid.S)
+            if left_out is not None:
+                grid_left_out = grid.gather(left_out)
+            if regions is not None:
+                rows, columns = regions[grid.name]
+                grid_frames = grid_frames[:, rows, columns]
+                grid_left_out = None if grid_left_out is None else grid_left_out[:, rows, columns]
+                grid_motion = grid_motion.conjugate(np.array([[1.0, 0, columns.start], [0, 1.0, rows.start],
+                                                              [0, 0, 1]]))
+            jobs.append((i, grid, (grid_frames, grid_left_out, grid_motion, exposures[used])))
+    if solver.method == "accurate" and len(useds) > 1:
+        update = progress("solve halves", 0) if progress else None
+        results = solve_accurate_many(
+            [dict(frames=f, motion=m, saturation=burst.saturation, excluded=x, exposures=e) for _, _, (f, x, m, e)
+             in jobs], options=solver.accurate, workers=solver.workers, progress=update, executor=solver.executor)
+    else:
+        results = [solve_grid(f, x, m, burst.saturation, solver, progress, grid.name, exposures=e)
+                   for _, grid, (f, x, m, e) in jobs]
+    out = [(np.ones(frames.shape[1:], np.float32), np.zeros(frames.shape[1:], np.float32), {}) for _ in useds]
+    for (i, grid, _), result in zip(jobs, results):
+        k, confidence, solved = out[i]
         grid_k, grid_confidence = result.k, result.confidence
         if regions is not None:
+            rows, columns = regions[grid.name]
             grid_k, grid_confidence = np.ones_like(grid.gather(k)), np.zeros_like(grid.gather(confidence))
             grid_k[rows, columns], grid_confidence[rows, columns] = result.k, result.confidence
         grid.scatter(k, grid_k)
         grid.scatter(confidence, grid_confidence)
         solved.update({name: PlaneReport(solver.method, grid.name, result.stats) for name in grid.positions})
-    return k, confidence, solved
+    return out
 
 
 def central(burst, frames, solver: Solver) -> dict:

@@ -4,10 +4,16 @@ import pytest
 from gainfpn_cli import metrics
 from gainfpn_cli.errors import EstimationError
 from gainfpn_cli.geometry.resample import low_pass
+from gainfpn_cli.geometry.warps import GlobalWarp
+from gainfpn_cli.parallel import single_threaded_math
 from gainfpn_cli.sim.motion import Shake
 from gainfpn_cli.sim.sensor import PRESETS, with_overrides
 from gainfpn_cli.sim.simulate import simulate_burst
-from gainfpn_cli.solve.accurate import AccurateOptions, solve_accurate
+from gainfpn_cli.solve.accurate import (
+    AccurateOptions,
+    solve_accurate,
+    solve_accurate_many,
+)
 
 NOISELESS = with_overrides(PRESETS["paper"], read_noise_e=0.0, shot_noise=False, adc_bits=16)
 
@@ -331,3 +337,17 @@ def test_phase_weights_help_where_the_planes_alias():
                                 options=AccurateOptions(phase_weights=on))
         residual[on] = residual_fpn_percent(result.k, burst.gain[0::2, 0::2], result.confidence > 0)
     assert residual[True] < 0.9 * residual[False], residual
+
+
+def test_problems_solved_together_are_solved_as_one_at_a_time():
+    # the halves of the frames (solving.solve_raws) share one pool: the same k, bit for bit
+    burst = simulate_burst(shape=(96, 128), n_frames=8, seed=2)
+    frames = burst.frames.astype(np.float32)
+    problems = [dict(frames=frames[idx], motion=GlobalWarp(burst.homographies[idx]), saturation=burst.saturation)
+                for idx in ([0, 2, 4, 6], [1, 3, 5, 7])]
+    together = solve_accurate_many(problems, workers=2)
+    for problem, result in zip(problems, together):
+        with single_threaded_math():  # as in the workers (and as pipeline.estimate runs it)
+            alone = solve_accurate(problem["frames"], problem["motion"], saturation=burst.saturation, workers=1)
+        np.testing.assert_array_equal(result.k, alone.k)
+        np.testing.assert_array_equal(result.confidence, alone.confidence)

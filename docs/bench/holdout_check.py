@@ -6,7 +6,7 @@
 
 Every burst is simulated with one frame more than the estimate gets: that unseen frame's MSE
 before over after correction says whether a map helps (frame 0 was fitted, and its MSE
-flatters k). Prints one JSON line per burst, then the counts. Takes about 8 minutes (rates) and 4
+flatters k). Prints one JSON line per burst, then the counts. Takes about 17 minutes (rates) and 6
 (short).
 """
 

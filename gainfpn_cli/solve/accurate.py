@@ -154,6 +154,29 @@ def solve_accurate(
     executor : parallel.DaskExecutor, optional
         Solve the tiles there instead.
     """
+    tiles = _prepare(frames, motion, options, saturation, excluded, exposures)
+    results = map_ordered(_solve_tile, tiles, workers=workers, progress=progress, executor=executor)
+    return _assemble(tiles, results, np.shape(frames)[1:], options)
+
+
+def solve_accurate_many(problems, *, options: AccurateOptions = AccurateOptions(), workers: int = 2, progress=None,
+                        executor=None) -> list[GainResult]:
+    """:func:`solve_accurate` of each of ``problems`` (dicts of its ``frames``, ``motion`` and, as
+    wanted, ``saturation``, ``excluded`` and ``exposures``), their tiles solved in one go: problems
+    of one tile each still run on every worker. The same results as one call each."""
+    prepared = [_prepare(p["frames"], p["motion"], options, p.get("saturation"), p.get("excluded"),
+                         p.get("exposures")) for p in problems]
+    results = map_ordered(_solve_tile, [t for tiles in prepared for t in tiles], workers=workers, progress=progress,
+                          executor=executor)
+    solved, start = [], 0
+    for p, tiles in zip(problems, prepared):
+        solved.append(_assemble(tiles, results[start:start + len(tiles)], np.shape(p["frames"])[1:], options))
+        start += len(tiles)
+    return solved
+
+
+def _prepare(frames, motion, options: AccurateOptions, saturation, excluded, exposures) -> list:
+    """The tiles of one problem, its inputs checked (see :func:`solve_accurate`)."""
     frames = np.asarray(frames, dtype=np.float32)
     if frames.ndim != 3 or frames.shape[0] < 2:
         raise ValueError(f"frames must have shape (F, H, W) with F >= 2, got {frames.shape}")
@@ -179,8 +202,12 @@ def solve_accurate(
             f"{2 * radius} px on each side (use solver.interpolation: bilinear, or solver.method: paper)"
         )
     sat = np.inf if saturation is None else float(saturation)
-    tiles = _tiles(frames, excluded, motion, sat, options, exposures)
-    results = map_ordered(_solve_tile, tiles, workers=workers, progress=progress, executor=executor)
+    return _tiles(frames, excluded, motion, sat, options, exposures)
+
+
+def _assemble(tiles, results, shape, options: AccurateOptions) -> GainResult:
+    """The tiles' k and confidence blended into one plane (``results`` freed as they are), gauged."""
+    h, w = shape
     # float32 frame-sized arrays (a 12 MP frame: 48 MB each); tiles' results are freed as they are blended
     k_sum = np.zeros((h, w), np.float32)
     conf_sum = np.zeros((h, w), np.float32)
