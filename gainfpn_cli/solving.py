@@ -64,7 +64,7 @@ def solve_planes(burst, frames, excluded, exposures, used: slice, in_frame, solv
     (on :func:`central` regions, and with :data:`MIN_SPLIT_FRAMES` or more), and ``calibrations``
     (plane name -> Calibration) gives them as measured before."""
     k, confidence, solved = solve_raw(burst, frames, excluded, exposures, used, in_frame, solver, progress,
-                                       regions=regions)
+                                      regions=regions)
     halves = None
     if split and solver.method == "accurate" and len(range(len(frames))[used]) >= MIN_SPLIT_FRAMES:
         middle = central(burst, frames, solver)
@@ -166,7 +166,7 @@ CHECK_Z = 2.0
 
 
 def check(burst, frames, excluded, exposures, n_fit, in_frame, solver: Solver, reports, calibrations, progress,
-           held_out: str, k, confidence):
+          held_out: str, k, confidence):
     """The hold-out check (:mod:`solve.holdout`) of the map ``k`` (``confidence``) of every grid on the
     frame named ``held_out``, and the grids it rejects.
 
@@ -180,7 +180,7 @@ def check(burst, frames, excluded, exposures, n_fit, in_frame, solver: Solver, r
         models={name: p.fpn_model for name, p in reports.items()}, calibrations=calibrations)
     checks = holdout_checks(frames, excluded, exposures, in_frame, k_check, grids=grids, saturation=burst.saturation,
                             regions=regions, disagreement=disagreement(k_check, confidence_check, k, confidence,
-                                                                        calibrated=solver.method == "accurate"))
+                                                                       calibrated=solver.method == "accurate"))
     failed = [grid for grid in grids if not checks[grid.name].passed(CHECK_Z)]
     every = pooled(checks.values())
     planes = {name: PlaneCheck(c.ratio, c.standard_error, c.passed(CHECK_Z), c.left_out) for name, c in checks.items()}
@@ -211,7 +211,7 @@ def rejection(holdout: Holdout, failed) -> str:
 
 
 def solve_grid(frames, excluded, motion, saturation, solver: Solver, progress, name,
-                exposures=None) -> GainResult:
+               exposures=None) -> GainResult:
     update = progress(f"solve {name}", 0) if progress else None
     if solver.method == "paper":
         if excluded is not None:  # the published form takes zeroed pixels as missing
