@@ -94,7 +94,6 @@ def estimate(burst: LoadedBurst, cfg: Config, *, progress: Progress | None = Non
         return _estimate(burst, cfg, solver, progress)
 
 
-
 def _estimate(burst: LoadedBurst, cfg: Config, solver: solving.Solver, progress: Progress | None) -> Estimate:
     timings: dict[str, float] = {}
     warnings: list[str] = []
@@ -158,8 +157,8 @@ def _estimate(burst: LoadedBurst, cfg: Config, solver: solving.Solver, progress:
                                                confidence)
         timings["holdout_s"] = time.perf_counter() - t0 - timings["solve_s"]
         for grid in failed:
-            grid.scatter(k, np.ones_like(grid.gather(k)))
-            grid.scatter(confidence, np.zeros_like(grid.gather(confidence)))
+            grid.scatter(k, np.ones(grid.shape, np.float32))
+            grid.scatter(confidence, np.zeros(grid.shape, np.float32))
         if failed:
             warnings.append(solving.rejection(holdout_report, failed))
     sigma = sigma_from_confidence(confidence)

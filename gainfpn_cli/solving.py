@@ -138,7 +138,7 @@ def solve_raws(burst, frames, excluded, exposures, useds, in_frame, solver: Solv
         grid_k, grid_confidence = result.k, result.confidence
         if regions is not None:
             rows, columns = regions[grid.name]
-            grid_k, grid_confidence = np.ones_like(grid.gather(k)), np.zeros_like(grid.gather(confidence))
+            grid_k, grid_confidence = np.ones(grid.shape, np.float32), np.zeros(grid.shape, np.float32)
             grid_k[rows, columns], grid_confidence[rows, columns] = result.k, result.confidence
         grid.scatter(k, grid_k)
         grid.scatter(confidence, grid_confidence)
@@ -150,7 +150,7 @@ def central(burst, frames, solver: Solver) -> dict:
     """The central :data:`CHECK_SIDE` px of every grid, as (rows, columns) slices by grid name."""
     regions = {}
     for grid in grids_of(burst, frames, solver.method):
-        h, w = grid.gather(frames[0]).shape
+        h, w = grid.shape
         y0, x0 = max(0, (h - CHECK_SIDE) // 2), max(0, (w - CHECK_SIDE) // 2)
         regions[grid.name] = (slice(y0, min(h, y0 + CHECK_SIDE)), slice(x0, min(w, x0 + CHECK_SIDE)))
     return regions

@@ -5,6 +5,7 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from gainfpn_cli.geometry import cfa as bayer
+from gainfpn_cli.geometry.planes import solve_grids
 
 
 @given(hnp.arrays(np.float32, hnp.array_shapes(min_dims=2, max_dims=2, min_side=2, max_side=15)))
@@ -87,3 +88,12 @@ def test_no_green_lattice_without_diagonal_greens():
 
     assert green_lattice("RGBG", (8, 8)) is None  # greens side by side in one row
     assert green_lattice("RGBW", (8, 8)) is None
+
+
+@pytest.mark.parametrize("cfa, channels", [("RGGB", ("Y",)), ("GRBG", ("Y",)), (None, ("R", "G", "B"))])
+@pytest.mark.parametrize("greens_together", [True, False])
+@pytest.mark.parametrize("shape", [(6, 8), (7, 9)])
+def test_a_grid_knows_its_shape_without_gathering(cfa, channels, greens_together, shape):
+    frame = np.zeros(shape + (len(channels),), np.float32)
+    for grid in solve_grids(cfa, channels, shape, greens_together=greens_together):
+        assert grid.shape == grid.gather(frame).shape

@@ -19,13 +19,15 @@ from .cfa import OFFSETS, green_lattice, grey_proxy, plane_to_mosaic
 class Grid:
     """Photosites solved together: ``gather`` takes them out of an ``(..., H, W, C)``
     array as ``(..., h, w)`` grids, ``scatter(dst, grids)`` puts values back, and ``S``
-    maps grid pixels to frame pixels. ``positions`` names the planes it covers."""
+    maps grid pixels to frame pixels. ``positions`` names the planes it covers, ``shape`` is
+    ``(h, w)``."""
 
     name: str
     gather: Callable
     scatter: Callable
     S: np.ndarray
     positions: tuple[str, ...]
+    shape: tuple[int, int]
 
 
 def plane_views(cfa: str | None, channels: tuple[str, ...]):
@@ -50,7 +52,8 @@ def solve_grids(cfa: str | None, channels: tuple[str, ...], shape: tuple[int, in
         def scatter(dst, grids):
             lattice.scatter(dst[..., 0], grids)
 
-        yield Grid("G", lambda a: lattice.gather(a[..., 0]), scatter, lattice.S, greens)
+        yield Grid("G", lambda a: lattice.gather(a[..., 0]), scatter, lattice.S, greens, lattice.shape)
+    nothing = np.broadcast_to(np.float32(0), tuple(shape) + (max(len(channels), 1),))  # a plane's shape, no copy
     for name, pick, S in plane_views(cfa, channels):
         if lattice is not None and name.startswith("G@"):
             continue
@@ -58,7 +61,7 @@ def solve_grids(cfa: str | None, channels: tuple[str, ...], shape: tuple[int, in
         def scatter(dst, grids, pick=pick):
             pick(dst)[...] = grids
 
-        yield Grid(name, pick, scatter, S, (name,))
+        yield Grid(name, pick, scatter, S, (name,), pick(nothing).shape)
 
 
 def motion_frames(frames: np.ndarray, cfa: str | None) -> tuple[np.ndarray, np.ndarray]:

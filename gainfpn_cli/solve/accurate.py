@@ -41,7 +41,7 @@ from ..geometry.warps import STILL_PX, FieldWarp, GlobalWarp, as_warp, trajector
 from ..metrics import MAD_TO_SIGMA
 from ..parallel import map_ordered
 from .phase import phase_weighted
-from .result import CONFIDENCE_SCALE, AccurateStats, GainResult, out_of_range, regauge
+from .result import AccurateStats, GainResult, confidence_from_sigma, out_of_range, regauge
 
 
 @dataclass(frozen=True)
@@ -417,4 +417,4 @@ def _confidence(residuals, weights, valid, information, est) -> np.ndarray:
     box = lambda a: cv2.boxFilter(a, -1, (5, 5), normalize=False, borderType=cv2.BORDER_REFLECT)  # noqa: E731
     local = np.divide(box(squares), box(counts), out=np.full(shape, np.inf), where=box(counts) > 0)
     sigma_k = np.sqrt(np.divide(local, 2.0 * information, out=np.full(shape, np.inf), where=est & (information > 0)))
-    return np.where(est, 1.0 / (1.0 + (sigma_k / CONFIDENCE_SCALE) ** 2), 0.0)
+    return np.where(est, confidence_from_sigma(sigma_k), 0.0)
