@@ -26,7 +26,6 @@ def find(frames: np.ndarray, cfa: str | None, channels: tuple[str, ...], *, excl
     ``warp`` its motion in frame pixels, ``excluded`` ``(F, H, W)`` the readings of moving objects,
     ``dark_hot`` ``(H, W, C)`` the hot photosites a dark frame shows (:func:`hot_in_dark`)."""
     scale = (1.0 / np.asarray(exposures, np.float32))[:, None, None]
-    clipped = None
     if saturation is not None:
         clipped = (frames >= saturation).any(axis=-1)
         excluded = clipped if excluded is None else excluded | clipped

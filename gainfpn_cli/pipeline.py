@@ -75,7 +75,8 @@ def load_burst(inputs, cfg: Config, *, progress: Progress | None = None) -> Load
                              f"with {stack.shape[3]}")
         stack -= dark.data[None]
         dark_stamp = stamp(cfg.input.dark)
-        dark_hot = defective.hot_in_dark(dark.data, info.cfa, info.channels)
+        if cfg.input.defects:
+            dark_hot = defective.hot_in_dark(dark.data, info.cfa, info.channels)
     saturation = cfg.input.saturation if cfg.input.saturation is not None else info.saturation
     return LoadedBurst(paths, stack, info.cfa, info.channels, saturation, cfg.input.reference, tuple(stamps),
                        dark_stamp, time.perf_counter() - t0, info.layout()[4], dark_hot)
