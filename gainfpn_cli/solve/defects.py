@@ -10,21 +10,25 @@ fewer than :data:`MIN_FRAMES` frames see a point (the borders), the median of th
 neighbours in its plane predicts it instead. Each photosite gets
 
 * its response, the median over frames of ``y_t / x_t``, and its score ``z``: the response's
-  distance from the plane's median, in units of the plane's robust spread of responses (gain
-  FPN and prediction error) and of the photosite's own scatter over the frames, in quadrature;
+  distance from the plane's median, in units of the robust spread of responses (gain FPN and
+  prediction error; the plane's, or its 5x5 neighbourhood's where larger: beside an edge or a
+  border the prediction misses for every photosite around) and of the photosite's own scatter
+  over the frames, in quadrature;
 * the variance of its readings over the frames, against a healthy photosite's there.
 
 Kinds, in the order they are tested (:data:`KINDS` gives the codes of ``gain_map.exr``'s
 ``defect`` channel):
 
-* ``dead``: no response, below :data:`DEAD_RESPONSE` of the plane's and ``z < -Z_DEFECT``;
-* ``stuck``: readings that vary less than :data:`STUCK_SPREAD` (in RMS) of a healthy
-  photosite's (the smaller of its 8 neighbours' and the scene's along its trajectory plus the
-  noise at its level), where that is more than :data:`QUANTISED_STEPS` quantisation steps;
-* ``hot``: a response far above the plane's, ``z > Z_DEFECT`` (a dark-current offset seen as a
-  gain: where the scene along its trajectory is flat, an offset and a gain cannot be told
-  apart from the burst, and one smaller than the plane's gain spread goes unseen; a dark frame
-  finds those, :func:`hot_in_dark`).
+* ``dead``: no response, below :data:`DEAD_RESPONSE` of the plane's, below :data:`DEAD_CEILING`
+  in every frame, and ``z < -Z_DEFECT``;
+* ``stuck``: one reading (to a quantisation step) in every frame, where a healthy photosite's
+  would vary more than :data:`QUANTISED_STEPS` quantisation steps, by more than 1 /
+  :data:`STUCK_SPREAD` times as much (in RMS) (the smaller of its 8 neighbours' and the scene's
+  along its trajectory plus the noise at its level);
+* ``hot``: a response far above the plane's, ``z > Z_DEFECT``, and above it in every frame (a
+  dark-current offset seen as a gain: where the scene along its trajectory is flat, an offset
+  and a gain cannot be told apart from the burst, and one smaller than the plane's gain spread
+  goes unseen; a dark frame finds those, :func:`hot_in_dark`).
 
 Abnormally noisy photosites are not flagged: at scene edges of an aliased plane the prediction's
 error scatters a healthy photosite's readings as much (docs/limits.md).
@@ -45,6 +49,10 @@ KINDS = {"hot": HOT, "dead": DEAD, "stuck": STUCK}
 
 #: A photosite that gives less than this fraction of its plane's response is dead.
 DEAD_RESPONSE = 0.25
+#: ... and less than this in every frame: a healthy photosite beside a sharp edge that the
+#: prediction misses reads dark in some frames only (a dead one reads its noise, which at the
+#: lowest level tested, MIN_LEVEL, is up to ~0.3 of it).
+DEAD_CEILING = 0.5
 #: Readings whose RMS spread over the frames is below this fraction of a healthy photosite's are stuck.
 STUCK_SPREAD = 0.02
 #: ... tested only where a healthy one's is above this many quantisation steps (RMS): with
@@ -52,8 +60,9 @@ STUCK_SPREAD = 0.02
 QUANTISED_STEPS = 3.0
 #: Score (in standard deviations) past which a response is a defect's: the tails are heavier than
 #: a Gaussian's (prediction errors at edges). Measured on 6 defect-free 240x320 raw12 dead-leaves
-#: bursts (true motion, 8 frames): 6 flagged 0.3-1.3e-4 of the healthy photosites, 7 0-0.9e-4.
-Z_DEFECT = 7.0
+#: bursts (true motion, 8 frames, seeds 10-15): 6 flagged 0-0.13e-4 of the healthy photosites, 7
+#: none; 6 finds 34 % of the simulated hot ones there, 7 31 % (docs/bench/defects.py).
+Z_DEFECT = 6.0
 #: Fewest frames a photosite is tested on: with fewer, a median and a spread are too uncertain.
 MIN_FRAMES = 4
 #: Fewest good neighbours (of 8) whose median predicts a photosite where the frames do not.
@@ -88,12 +97,15 @@ def detect(frames: np.ndarray, warp, *, saturation: float | None = None,
     step = _quantisation_step(frames)
     floor = max(MIN_LEVEL * float(np.quantile(x[valid], 0.99)) if valid.any() else 0.0, LEVEL_STEPS * step)
     usable = valid & (x > floor)
-    response, scatter, n = _responses(frames, x, usable)
+    response, scatter, n, lowest, highest = _responses(frames, x, usable)
     tested = n >= MIN_FRAMES
     if not tested.any():
         return codes
     typical = float(np.median(response[tested]))
     spread = MAD_TO_SIGMA * float(np.median(np.abs(response[tested] - typical)))
+    # the plane's spread, or its neighbourhood's where larger: beside an edge or a border the
+    # prediction misses, consistently over the frames, for every photosite around
+    spread = np.maximum(spread, MAD_TO_SIGMA * _local_median(np.where(tested, np.abs(response - typical), 0.0)))
     # the median of n ratios scatters pi/2 times as much (in variance) as their mean; a scatter
     # from a few frames can be small by chance: not below its neighbourhood's (prediction errors
     # near an edge are shared by the photosites along it)
@@ -101,12 +113,12 @@ def detect(frames: np.ndarray, warp, *, saturation: float | None = None,
     own = np.pi / 2 * np.maximum(scatter, local) ** 2 / np.maximum(n, 1)
     z = np.where(tested, (response - typical) / np.sqrt(spread**2 + own + 1e-30), 0.0)
 
-    dead = tested & (response < DEAD_RESPONSE * typical) & (z < -Z_DEFECT)
+    dead = tested & (response < DEAD_RESPONSE * typical) & (highest < DEAD_CEILING * typical) & (z < -Z_DEFECT)
     whole = usable.all(axis=0) & ~dead
     residual = (frames - response[None] * x)[:, whole]
     noise = _noise_model(x[:, whole].mean(axis=0), residual.var(axis=0, ddof=1), n_frames)
     stuck = ~dead & _stuck(frames, good, x, valid, typical, noise, step)
-    hot = tested & ~dead & ~stuck & (z > Z_DEFECT)
+    hot = tested & ~dead & ~stuck & (z > Z_DEFECT) & (lowest > typical)
     for mask, code in ((dead, DEAD), (stuck, STUCK), (hot, HOT)):
         codes[mask] = code
     return codes
@@ -159,8 +171,9 @@ def _ring_median(values: np.ndarray, known: np.ndarray) -> tuple[np.ndarray, np.
         return np.nanmedian(ring, axis=0), np.isfinite(ring).sum(axis=0)
 
 
-def _responses(y: np.ndarray, x: np.ndarray, usable: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per photosite: the median over frames of ``y / x``, its robust scatter, and the count."""
+def _responses(y: np.ndarray, x: np.ndarray, usable: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Per photosite: the median over frames of ``y / x``, its robust scatter, the count, the
+    lowest and the highest."""
     with np.errstate(divide="ignore", invalid="ignore"):
         ratio = np.where(usable, y / x, np.nan)
     n = usable.sum(axis=0)
@@ -168,7 +181,8 @@ def _responses(y: np.ndarray, x: np.ndarray, usable: np.ndarray) -> tuple[np.nda
         warnings.simplefilter("ignore", RuntimeWarning)
         response = np.nanmedian(ratio, axis=0)
         scatter = MAD_TO_SIGMA * np.nanmedian(np.abs(ratio - response[None]), axis=0)
-    return np.nan_to_num(response), np.nan_to_num(scatter), n
+        lowest, highest = np.nanmin(ratio, axis=0), np.nanmax(ratio, axis=0)
+    return np.nan_to_num(response), np.nan_to_num(scatter), n, np.nan_to_num(lowest), np.nan_to_num(highest)
 
 
 def _stuck(frames: np.ndarray, good: np.ndarray, x: np.ndarray, valid: np.ndarray, typical: float,
@@ -177,7 +191,10 @@ def _stuck(frames: np.ndarray, good: np.ndarray, x: np.ndarray, valid: np.ndarra
     less than a healthy one's would, where that is well past quantisation. A healthy one's
     variance is the smaller of two estimates, each too large somewhere: the median of its 8
     neighbours' (too large beside an edge) and the scene's along its trajectory plus the noise
-    at its level (the noise model takes in the prediction's error on aliased planes)."""
+    at its level (the noise model takes in the prediction's error on aliased planes). And that
+    read one value, to a quantisation step, in every frame: beside an edge the prediction misses
+    (a border) both estimates can be far too large for a healthy photosite, whose readings still
+    vary by its temporal noise."""
     whole = good.all(axis=0) & valid.all(axis=0)
     spread = frames.var(axis=0)
     around, _ = _ring_median(spread, whole)
@@ -185,7 +202,8 @@ def _stuck(frames: np.ndarray, good: np.ndarray, x: np.ndarray, valid: np.ndarra
     scene = MAD_TO_SIGMA * np.median(np.abs(x - np.median(x, axis=0)[None]), axis=0)
     expected = np.fmin(np.nan_to_num(around, nan=np.inf),
                        (typical * scene) ** 2 + noise(np.maximum(np.median(x, axis=0), 0.0)))
-    return whole & (expected > (QUANTISED_STEPS * step) ** 2) & (spread < STUCK_SPREAD**2 * expected)
+    constant = np.ptp(frames, axis=0) <= step
+    return whole & (expected > (QUANTISED_STEPS * step) ** 2) & (spread < STUCK_SPREAD**2 * expected) & constant
 
 
 def _noise_model(level: np.ndarray, scatter: np.ndarray, n: int):
