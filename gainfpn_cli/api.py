@@ -39,11 +39,12 @@ class Estimate:
     report: Report
     burst: _burst.LoadedBurst = field(repr=False)
     config: Config = field(repr=False)
+    defects: np.ndarray | None = None  # (H, W, C) uint8 defect codes (solve.defects.KINDS); None: not looked for
 
     def write(self, out_dir: str | os.PathLike, *, overwrite: bool = False, progress=None) -> Written:
         """gain_map.exr, corrected/, report.json, config.used.yaml and preview.png into ``out_dir``
         (:mod:`outdir`: only gainfpn's own names are replaced, and only with ``overwrite``)."""
-        estimate = _burst.Estimate(self.k, self.confidence, self.report)
+        estimate = _burst.Estimate(self.k, self.confidence, self.report, self.defects)
         return write_estimate(estimate, self.burst, self.config, Path(out_dir), overwrite=overwrite, progress=progress)
 
 
@@ -85,7 +86,7 @@ def estimate(inputs, *, config: Config | str | os.PathLike | None = None, preset
         loaded = load_burst([inputs] if isinstance(inputs, (str, os.PathLike)) else list(inputs), cfg,
                             progress=progress)
     result = _estimate(loaded, cfg, progress=progress, executor=executor)
-    return Estimate(result.k, result.confidence, result.report, loaded, cfg)
+    return Estimate(result.k, result.confidence, result.report, loaded, cfg, result.defects)
 
 
 def burst_of(frames: np.ndarray, *, cfa: str | None = None, saturation: float | None = None,
@@ -105,10 +106,11 @@ def burst_of(frames: np.ndarray, *, cfa: str | None = None, saturation: float | 
 
 
 def apply(inputs, *, gain_map: str | os.PathLike, out_dir: str | os.PathLike, dark: str | os.PathLike | None = None,
-          overwrite: bool = False, progress=None) -> list[Path]:
+          overwrite: bool = False, progress=None, repair: bool = True) -> list[Path]:
     """Correct other captures with a stored gain map, as ``estimate`` corrects its own frames
-    (the map's dark frame subtracted first); return the corrected frames written."""
+    (the map's dark frame subtracted first, with ``repair`` its defective photosites replaced
+    from their neighbours); return the corrected frames written."""
     inputs = [inputs] if isinstance(inputs, (str, os.PathLike)) else list(inputs)
     written, _ = apply_gain_map(Path(gain_map), inputs, Path(out_dir), dark=None if dark is None else Path(dark),
-                                overwrite=overwrite, progress=progress)
+                                overwrite=overwrite, progress=progress, repair=repair)
     return written

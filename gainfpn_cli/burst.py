@@ -27,15 +27,18 @@ class LoadedBurst:
     dark: FileStamp | None = None  # the master dark frame subtracted, if any
     read_s: float = 0.0  # time taken to read the frames
     white: float | None = None  # the files' white level in DN (black level included), when they state one
+    dark_hot: np.ndarray | None = None  # (H, W, C) bool: the hot photosites the dark frame shows
 
 
 @dataclass(frozen=True)
 class Estimate:
-    """A gain map and its report: ``k`` and ``confidence`` ``(H, W, C)`` float32."""
+    """A gain map and its report: ``k`` and ``confidence`` ``(H, W, C)`` float32, and the
+    defective photosites ``(H, W, C)`` uint8 (:data:`solve.defects.KINDS`; None: not searched)."""
 
     k: np.ndarray
     confidence: np.ndarray
     report: Report
+    defects: np.ndarray | None = None
 
     @property
     def warnings(self) -> tuple[str, ...]:

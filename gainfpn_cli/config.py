@@ -125,6 +125,10 @@ class InputConfig:
         "DN (after black level) at or above which a pixel is clipped; null = from the file",
     )
     dark: str | None = _key(None, optional(path_string), "master dark frame subtracted first; null = none")
+    defects: bool = _key(
+        True, boolean, "find defective photosites (hot, dead, stuck) from the burst, and hot ones from the dark "
+        "frame; leave them out of the solve, write k = 1 and confidence 0 there"
+    )
     exposure: str = _key(
         "per-frame",
         choice("per-frame", "fixed"),
@@ -196,6 +200,10 @@ class SolverConfig:
 class OutputConfig:
     compression: str = _key("zip", choice(*LOSSLESS_COMPRESSIONS), "EXR compression (lossless ones only)")
     corrected: bool = _key(True, boolean, "write every corrected input frame")
+    repair: bool = _key(
+        True, boolean, "in corrected frames, replace defective photosites by the mean of their healthy neighbours "
+        "of the same colour"
+    )
     preview: bool = _key(True, boolean, "write preview.png of the gain map")
     holdout: bool = _key(
         True, boolean, "fit without the last frame and check, plane by plane, that k helps on it by more than the "

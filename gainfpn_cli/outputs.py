@@ -18,6 +18,7 @@ import numpy as np
 from . import __version__
 from .burst import Estimate, LoadedBurst, Progress
 from .config import Config, dump_config
+from .defective import repair
 from .errors import EstimationError, InputError
 from .files import (
     ATTR_CFA,
@@ -33,15 +34,21 @@ from .files import (
 from .outdir import OutputPlan, prepare, staged
 from .preview import write_preview
 from .report import Report
+from .solve.defects import KINDS
 
 
-def _gain_planes(k: np.ndarray, confidence: np.ndarray, channels: tuple[str, ...], cfa: str | None) -> dict:
-    if cfa or len(channels) == 1:
-        return {"Y": k[..., 0], "confidence": confidence[..., 0]}
+def _gain_planes(k: np.ndarray, confidence: np.ndarray, defects: np.ndarray | None, channels: tuple[str, ...],
+                 cfa: str | None) -> dict:
+    """The channels of gain_map.exr: k, its confidence and (when looked for) the defect codes,
+    for one plane (``Y``, ``confidence``, ``defect``) or per colour (``R``, ``R.confidence``, ...)."""
+    names = ("Y",) if cfa or len(channels) == 1 else channels
     planes = {}
-    for c, name in enumerate(channels):
+    for c, name in enumerate(names):
+        prefix = "" if name == "Y" else f"{name}."
         planes[name] = k[..., c]
-        planes[f"{name}.confidence"] = confidence[..., c]
+        planes[f"{prefix}confidence"] = confidence[..., c]
+        if defects is not None:
+            planes[f"{prefix}defect"] = defects[..., c].astype(np.float32)
     return planes
 
 
@@ -92,14 +99,15 @@ def write_estimate(result: Estimate, burst: LoadedBurst, cfg: Config, out_dir: P
     if burst.cfa:
         metadata[ATTR_CFA] = burst.cfa
     with staged(plan) as tmp:
-        write_exr(tmp / "gain_map.exr", _gain_planes(result.k, result.confidence, burst.channels, burst.cfa),
-                  metadata=metadata, compression=cfg.output.compression)
+        write_exr(tmp / "gain_map.exr", _gain_planes(result.k, result.confidence, result.defects, burst.channels,
+                                                     burst.cfa), metadata=metadata, compression=cfg.output.compression)
         if cfg.output.corrected:
             (tmp / "corrected").mkdir()
             update = progress("write", len(burst.paths)) if progress else None
+            repair = result.defects if cfg.output.repair else None
             _write_corrected(lambda i: (burst.paths[i], burst.frames[i]), len(burst.paths), result.k,
                              tmp / "corrected", cfa=burst.cfa, channels=burst.channels, saturation=burst.saturation,
-                             compression=cfg.output.compression, update=update)
+                             compression=cfg.output.compression, update=update, defects=repair)
         if cfg.output.preview:
             write_preview(tmp / "preview.png", result.k, result.confidence, report=result.report,
                           name=burst_name(burst.paths), cfa=burst.cfa, channels=burst.channels)
@@ -111,9 +119,10 @@ def write_estimate(result: Estimate, burst: LoadedBurst, cfg: Config, out_dir: P
 
 def _write_corrected(frame: Callable[[int], tuple[Path, np.ndarray]], count: int, k: np.ndarray, folder: Path, *,
                      cfa: str | None, channels: tuple[str, ...], saturation: float | None, compression: str,
-                     update=None) -> None:
-    """``folder/<stem>.exr`` = ``k`` times each frame ``frame(i) -> (path, DN)`` for ``i < count``:
-    the one writer of corrected frames, for ``estimate`` and ``apply`` alike."""
+                     update=None, defects: np.ndarray | None = None) -> None:
+    """``folder/<stem>.exr`` = ``k`` times each frame ``frame(i) -> (path, DN)`` for ``i < count``,
+    its ``defects`` (if given) repaired from their neighbours: the one writer of corrected frames,
+    for ``estimate`` and ``apply`` alike."""
     names = ("Y",) if cfa or len(channels) == 1 else channels
     metadata: dict = {"gainfpn:version": __version__}
     if cfa:
@@ -124,6 +133,8 @@ def _write_corrected(frame: Callable[[int], tuple[Path, np.ndarray]], count: int
     def write(i: int) -> None:
         path, data = frame(i)
         corrected = data * k
+        if defects is not None:
+            corrected = repair(corrected, defects, cfa, channels)
         _check_finite(corrected, path)
         write_exr(folder / f"{path.stem}.exr", {n: corrected[..., c] for c, n in enumerate(names)},
                   metadata=metadata, compression=compression)
@@ -200,13 +211,25 @@ def _check_finite(corrected: np.ndarray, path: Path) -> None:
 
 def read_gain_map(path: Path) -> tuple[np.ndarray, dict]:
     """k as ``(H, W, C)`` and the map's attributes."""
+    k, attrs, _ = read_gain_map_defects(path)
+    return k, attrs
+
+
+def read_gain_map_defects(path: Path) -> tuple[np.ndarray, dict, np.ndarray | None]:
+    """k as ``(H, W, C)``, the map's attributes and its defect codes ``(H, W, C)`` uint8 (None
+    for a map written without them)."""
     planes, attrs = read_exr_planes(path)
-    if "Y" in planes:
-        return planes["Y"][..., None], attrs
-    names = [n for n in ("R", "G", "B") if n in planes]
+    names = ["Y"] if "Y" in planes else [n for n in ("R", "G", "B") if n in planes]
     if not names:
         raise InputError(f"{path}: not a gainfpn gain map (no Y or R G B channel)")
-    return np.stack([planes[n] for n in names], axis=-1), attrs
+    k = np.stack([planes[n] for n in names], axis=-1)
+    defect = ["defect" if n == "Y" else f"{n}.defect" for n in names]
+    if not all(d in planes for d in defect):
+        return k, attrs, None
+    codes = np.stack([planes[d] for d in defect], axis=-1)
+    if not np.isin(codes, [0, *KINDS.values()]).all():
+        raise InputError(f"{path}: damaged defect channel (codes other than 0 and {sorted(KINDS.values())})")
+    return k, attrs, codes.astype(np.uint8)
 
 
 def apply_dark(attrs: dict, dark: Path | None, gain_map: Path) -> Path | None:
@@ -243,10 +266,11 @@ def apply_plan(gain_map: Path, paths: list[Path], out_dir: Path, *, dark: Path |
 
 
 def apply_gain_map(gain_map: Path, inputs, out_dir: Path, *, dark: Path | None = None, overwrite: bool = False,
-                   progress: Progress | None = None) -> tuple[list[Path], OutputPlan]:
+                   progress: Progress | None = None, repair: bool = True) -> tuple[list[Path], OutputPlan]:
     """Correct other captures with a stored map, exactly as ``estimate`` corrects its own frames
-    (the map's dark frame subtracted first); return the frames written and the output plan."""
-    k, attrs = read_gain_map(gain_map)
+    (the map's dark frame subtracted first, with ``repair`` the map's defective photosites
+    replaced from their neighbours); return the frames written and the output plan."""
+    k, attrs, defects = read_gain_map_defects(gain_map)
     dark = apply_dark(attrs, dark, gain_map)
     paths = find_frames(inputs)
     plan = apply_plan(gain_map, paths, out_dir, dark=dark, overwrite=overwrite)
@@ -271,5 +295,6 @@ def apply_gain_map(gain_map: Path, inputs, out_dir: Path, *, dark: Path | None =
 
     with staged(plan) as tmp:
         _write_corrected(frame, len(paths), k, tmp, cfa=first.info.cfa, channels=first.info.channels,
-                         saturation=first.info.saturation, compression="zip", update=update)
+                         saturation=first.info.saturation, compression="zip", update=update,
+                         defects=defects if repair else None)
     return [out_dir / f"{p.stem}.exr" for p in paths], plan

@@ -12,7 +12,7 @@ import time
 
 import numpy as np
 
-from . import __version__, solving
+from . import __version__, defective, solving
 from .burst import Estimate, LoadedBurst, Progress
 from .config import Config, config_dict
 from .errors import EstimationError, InputError, TrackingError
@@ -21,7 +21,7 @@ from .geometry.planes import frame_homography, motion_frames, reference_cells
 from .motion.estimate import estimate_motion
 from .motion.exposure import relative_exposures, rough_exposures, significant
 from .motion.masks import moving_masks
-from .report import Exposure, FrameMotion, Layer, Motion, Prnu, Report
+from .report import Defects, Exposure, FrameMotion, Layer, Motion, Prnu, Report
 from .solve.accurate import power_of_two_scale
 from .solve.result import sigma_from_confidence
 
@@ -66,7 +66,7 @@ def load_burst(inputs, cfg: Config, *, progress: Progress | None = None) -> Load
         if update:
             update(1)
     info = infos[0]
-    dark_stamp = None
+    dark_stamp = dark_hot = None
     if cfg.input.dark is not None:
         dark = read_frame(cfg.input.dark)
         if dark.data.shape != stack.shape[1:]:
@@ -75,9 +75,11 @@ def load_burst(inputs, cfg: Config, *, progress: Progress | None = None) -> Load
                              f"with {stack.shape[3]}")
         stack -= dark.data[None]
         dark_stamp = stamp(cfg.input.dark)
+        if cfg.input.defects:
+            dark_hot = defective.hot_in_dark(dark.data, info.cfa, info.channels)
     saturation = cfg.input.saturation if cfg.input.saturation is not None else info.saturation
     return LoadedBurst(paths, stack, info.cfa, info.channels, saturation, cfg.input.reference, tuple(stamps),
-                       dark_stamp, time.perf_counter() - t0, info.layout()[4])
+                       dark_stamp, time.perf_counter() - t0, info.layout()[4], dark_hot)
 
 
 def estimate(burst: LoadedBurst, cfg: Config, *, progress: Progress | None = None, executor=None) -> Estimate:
@@ -128,39 +130,49 @@ def _estimate(burst: LoadedBurst, cfg: Config, solver: solving.Solver, progress:
     excluded, moving = _moving(frames, motion_images, motion.warp, burst.cfa, cfg, exposures)
     del motion_images
     timings["motion_s"] = time.perf_counter() - t0
+    codes = None
+    if cfg.input.defects:
+        t0 = time.perf_counter()
+        codes = defective.find(frames, burst.cfa, burst.channels, excluded=excluded, exposures=exposures,
+                               warp=in_frame, saturation=burst.saturation, dark_hot=burst.dark_hot)
+        timings["defects_s"] = time.perf_counter() - t0
 
-    t0 = time.perf_counter()
-    n_fit = len(fit_frames)
-    k, confidence, plane_reports, calibrations = solving.solve_planes(
-        burst, frames, excluded, exposures, slice(0, n_fit), in_frame, solver, progress,
-        split=cfg.motion.refine_rounds == 0)
-    for round_ in range(1, cfg.motion.refine_rounds + 1):
-        corrected, _ = motion_frames(frames * (k / np.float32(power_of_two_scale(frames[0])))[None], burst.cfa)
-        # the model is chosen again: on frames without their gain pattern the choice can change (a forced
-        # "layers" would also lose the base model auto chose for it)
-        ignore = reference_cells(excluded, corrected.shape[1:], burst.cfa)  # no corner on what the round masked
-        motion = estimate_motion(corrected, model=cfg.motion.model, ignore=ignore, exposures=exposures)
-        reason = f"{motion.reason}; refined on frames corrected by k (round {round_})"
-        motion = dataclasses.replace(motion, reason=reason)
-        in_frame = motion.warp.conjugate(np.linalg.inv(S_motion))
-        excluded, moving = _moving(frames, corrected, motion.warp, burst.cfa, cfg, exposures)
-        del corrected
+    # the defects' readings are replaced from their neighbours while they are solved and checked
+    with defective.repaired(frames, codes, burst.cfa, burst.channels):
+        t0 = time.perf_counter()
+        n_fit = len(fit_frames)
         k, confidence, plane_reports, calibrations = solving.solve_planes(
             burst, frames, excluded, exposures, slice(0, n_fit), in_frame, solver, progress,
-            split=round_ == cfg.motion.refine_rounds)  # measured once, on the final fit
-    timings["solve_s"] = time.perf_counter() - t0
+            split=cfg.motion.refine_rounds == 0)
+        for round_ in range(1, cfg.motion.refine_rounds + 1):
+            corrected, _ = motion_frames(frames * (k / np.float32(power_of_two_scale(frames[0])))[None], burst.cfa)
+            # the model is chosen again: on frames without their gain pattern the choice can change (a forced
+            # "layers" would also lose the base model auto chose for it)
+            ignore = reference_cells(excluded, corrected.shape[1:], burst.cfa)  # no corner on what the round masked
+            motion = estimate_motion(corrected, model=cfg.motion.model, ignore=ignore, exposures=exposures)
+            reason = f"{motion.reason}; refined on frames corrected by k (round {round_})"
+            motion = dataclasses.replace(motion, reason=reason)
+            in_frame = motion.warp.conjugate(np.linalg.inv(S_motion))
+            excluded, moving = _moving(frames, corrected, motion.warp, burst.cfa, cfg, exposures)
+            del corrected
+            k, confidence, plane_reports, calibrations = solving.solve_planes(
+                burst, frames, excluded, exposures, slice(0, n_fit), in_frame, solver, progress,
+                split=round_ == cfg.motion.refine_rounds)  # measured once, on the final fit
+        timings["solve_s"] = time.perf_counter() - t0
 
-    holdout_report = None
-    if holdout:
-        holdout_report, failed = solving.check(burst, frames, excluded, exposures, n_fit, in_frame, solver,
-                                               plane_reports, calibrations, progress, burst.paths[order[-1]].name, k,
-                                               confidence)
-        timings["holdout_s"] = time.perf_counter() - t0 - timings["solve_s"]
-        for grid in failed:
-            grid.scatter(k, np.ones(grid.shape, np.float32))
-            grid.scatter(confidence, np.zeros(grid.shape, np.float32))
-        if failed:
-            warnings.append(solving.rejection(holdout_report, failed))
+        holdout_report = None
+        if holdout:
+            holdout_report, failed = solving.check(burst, frames, excluded, exposures, n_fit, in_frame, solver,
+                                                   plane_reports, calibrations, progress,
+                                                   burst.paths[order[-1]].name, k, confidence)
+            timings["holdout_s"] = time.perf_counter() - t0 - timings["solve_s"]
+            for grid in failed:
+                grid.scatter(k, np.ones(grid.shape, np.float32))
+                grid.scatter(confidence, np.zeros(grid.shape, np.float32))
+            if failed:
+                warnings.append(solving.rejection(holdout_report, failed))
+    if codes is not None:  # no gain is known there; corrected frames repair them (output.repair)
+        defective.leave_out(k, confidence, codes, burst.cfa, burst.channels)
     sigma = sigma_from_confidence(confidence)
     # only the accurate solver's confidence is a calibrated standard error
     calibrated = (confidence > 0).any() and all(p.method == "accurate" for p in plane_reports.values())
@@ -185,13 +197,14 @@ def _estimate(burst: LoadedBurst, cfg: Config, solver: solving.Solver, progress:
             moving_percent=moving,
         ),
         exposure=exposure_report,
+        defects=None if codes is None else Defects(**defective.counts(codes), dark_frame=burst.dark_hot is not None),
         planes=plane_reports,
         config=config_dict(cfg),
         timings={"read_s": burst.read_s, **timings},
         versions=_versions(),
         warnings=tuple(warnings),
     )
-    return Estimate(k.astype(np.float32), confidence.astype(np.float32), report)
+    return Estimate(k.astype(np.float32), confidence.astype(np.float32), report, codes)
 
 
 def _track(motion_images, burst, cfg, progress) -> tuple:

@@ -197,6 +197,29 @@ class PlaneReport:
 
 
 @dataclass(frozen=True)
+class Defects:
+    """Defective photosites found (:mod:`defective`), by kind; ``dark_frame``: hot ones were also
+    looked for in the dark frame."""
+
+    hot: int = 0
+    dead: int = 0
+    stuck: int = 0
+    dark_frame: bool = False
+
+    @property
+    def total(self) -> int:
+        return self.hot + self.dead + self.stuck
+
+    def to_json(self) -> dict:
+        return {"total": self.total, "hot": self.hot, "dead": self.dead, "stuck": self.stuck,
+                "dark_frame": self.dark_frame}
+
+    @classmethod
+    def from_json(cls, data: dict) -> "Defects":
+        return cls(data["hot"], data["dead"], data["stuck"], data["dark_frame"])
+
+
+@dataclass(frozen=True)
 class Report:
     """What an estimate found and how: the report of :func:`pipeline.estimate`."""
 
@@ -210,6 +233,7 @@ class Report:
     white_level_dn: float | None = None
     reference: str = ""
     exposure: Exposure = field(default_factory=Exposure)
+    defects: Defects | None = None  # None: not looked for (input.defects: false)
     planes: dict = field(default_factory=dict)  # plane name -> PlaneReport
     config: dict = field(default_factory=dict)
     timings: dict = field(default_factory=dict)  # seconds per stage
@@ -256,6 +280,7 @@ class Report:
             "reference": self.reference,
             "motion": self.motion.to_json(),
             "exposure": self.exposure.to_json(),
+            "defects": None if self.defects is None else self.defects.to_json(),
             "planes": {name: p.to_json() for name, p in self.planes.items()},
             "config": self.config,
             "timings": self.timings,
@@ -278,6 +303,7 @@ class Report:
             white_level_dn=data["white_level_dn"],
             reference=data["reference"],
             exposure=Exposure.from_json(data["exposure"]),
+            defects=None if data.get("defects") is None else Defects.from_json(data["defects"]),
             planes={name: PlaneReport.from_json(p) for name, p in data["planes"].items()},
             config=data["config"],
             timings=data["timings"],

@@ -32,6 +32,15 @@ def after_text(report: Report) -> str:
     return "" if after is None else f" -> predicted residual {after:.2f} %"
 
 
+def defects_text(defects) -> str:
+    """``, 12 defective photosites (10 hot, 1 dead, 1 stuck)``, or nothing when none were found."""
+    if defects is None or defects.total == 0:
+        return ""
+    kinds = ", ".join(f"{n} {kind}" for kind, n in (("hot", defects.hot), ("dead", defects.dead),
+                                                     ("stuck", defects.stuck)) if n)
+    return f", {defects.total} defective photosites ({kinds})"
+
+
 def estimate_line(report: Report, out_dir: Path) -> str:
     """The line ``estimate`` prints: what the lab measures first, then how it was obtained."""
     spread = report.exposure_spread_percent
@@ -39,6 +48,7 @@ def estimate_line(report: Report, out_dir: Path) -> str:
             f"{len(report.inputs)} frames, motion {report.motion.model}, FPN model {report.fpn_models}, "
             f"{report.estimated_percent:.0f} % of pixels estimated"
             + (f", exposures differ by up to {spread:.1f} % (divided out)" if spread > 0 else "")
+            + defects_text(report.defects)
             + f" -> {out_dir}")
 
 
@@ -48,7 +58,7 @@ def estimate_record(report: Report, out_dir: Path, *, untouched: tuple = ()) -> 
     corrected = out_dir / "corrected"
     return {
         **{key: full[key] for key in ("status", "prnu_percent", "predicted_residual_percent", "holdout",
-                                      "estimated_percent")},
+                                      "estimated_percent", "defects")},
         "motion_model": report.motion.model,
         "fpn_models": report.fpn_models,
         "warnings": list(report.warnings),

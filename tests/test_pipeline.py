@@ -56,7 +56,7 @@ def test_outputs_are_complete_and_documented(exr_burst, tmp_path):
     result = estimate(loaded, cfg)
     write_estimate(result, loaded, cfg, tmp_path / "o")
     planes, attrs = io.read_exr_planes(tmp_path / "o" / "gain_map.exr")
-    assert set(planes) == {"Y", "confidence"}
+    assert set(planes) == {"Y", "confidence", "defect"}
     k, conf = planes["Y"], planes["confidence"]
     assert k.dtype == np.float32 and k.shape == burst.gain.shape
     assert np.all((conf >= 0) & (conf <= 1)) and np.all(k[conf == 0] == 1.0)
@@ -70,7 +70,7 @@ def test_outputs_are_complete_and_documented(exr_burst, tmp_path):
         assert key in report
     assert [Path(i["path"]) for i in report["inputs"]] == [p.absolute() for p in loaded.paths]
     assert all(len(i["sha256"]) == 64 and i["size_bytes"] > 0 for i in report["inputs"])
-    assert set(report["timings"]) == {"read_s", "motion_s", "solve_s", "holdout_s", "write_s", "total_s"}
+    assert set(report["timings"]) == {"read_s", "motion_s", "defects_s", "solve_s", "holdout_s", "write_s", "total_s"}
     assert report["timings"]["total_s"] == pytest.approx(sum(v for k_, v in report["timings"].items()
                                                              if k_ != "total_s"))
     # one unit convention: no fractions beside the percentages

@@ -202,7 +202,7 @@ def test_defects_are_drawn_by_kind_and_change_no_healthy_photosite():
     burst = simulate_burst(shape=(120, 160), n_frames=4, sensor=sensor, seed=3, defects=0.01)
     assert clean.defects is None
     counts = {kind: int((burst.defects == code).sum()) for kind, code in KINDS.items()}
-    assert counts == {"hot": 134, "dead": 29, "stuck": 29, "noisy": 0}  # 192 = 1 % in DEFECT_SHARES
+    assert counts == {"hot": 134, "dead": 29, "stuck": 29}  # 192 = 1 % in DEFECT_SHARES
     assert counts["hot"] == round(DEFECT_SHARES["hot"] * 192)
     healthy = burst.defects == 0
     np.testing.assert_array_equal(burst.frames[:, healthy], clean.frames[:, healthy])

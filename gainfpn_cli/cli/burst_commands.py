@@ -167,20 +167,24 @@ def batch(manifest, out_dir, config_path, preset, overwrite, scheduler, local_wo
 @click.option("-o", "--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path))
 @click.option("--dark", type=click.Path(exists=True, dir_okay=False, path_type=Path),
               help="The master dark frame the map was estimated with [default: the one its header records].")
+@click.option("--repair/--no-repair", default=True, show_default=True,
+              help="Replace the map's defective photosites from their healthy neighbours of the same colour.")
 @overwrite_option
 @json_option
 @quiet_option
-def apply(inputs, gain_map, out_dir, dark, overwrite, as_json, quiet):
+def apply(inputs, gain_map, out_dir, dark, repair, overwrite, as_json, quiet):
     """Correct other captures (INPUTS) with a stored gain map, as `estimate` corrects its own.
 
     Writes OUT/<name>.exr for each input. A map estimated with --dark has that
     dark frame subtracted first (found where its header says, or given again).
+    Photosites the map marks defective are repaired unless --no-repair.
     """
     from ..outputs import apply_gain_map
 
     progress = progress_bars(quiet)
     try:
-        written, plan = apply_gain_map(gain_map, inputs, out_dir, dark=dark, overwrite=overwrite, progress=progress)
+        written, plan = apply_gain_map(gain_map, inputs, out_dir, dark=dark, overwrite=overwrite, progress=progress,
+                                       repair=repair)
     finally:
         close(progress)
     untouched(plan, as_json)

@@ -31,7 +31,8 @@ from ..report import Report
 #: Columns of summary.csv (summary.json holds the same rows) and the decimals each number is rounded to.
 COLUMNS = {"name": None, "status": None, "earlier": None, "frames": None, "motion_model": None, "fpn_models": None,
            "prnu_percent": 3, "prnu_pixel_percent": 3, "prnu_column_percent": 3, "prnu_row_percent": 3,
-           "predicted_residual_percent": 3, "holdout_ratio": 4, "exposure_spread_percent": 3, "time_s": 2,
+           "predicted_residual_percent": 3, "holdout_ratio": 4, "exposure_spread_percent": 3,
+           "defects_hot": None, "defects_dead": None, "defects_stuck": None, "time_s": 2,
            "message": None}
 SUMMARY_FILES = ("summary.csv", "summary.json")
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
@@ -180,6 +181,8 @@ def _row(name: str, report: Report, seconds: float) -> dict:
         "predicted_residual_percent": report.predicted_residual_percent,
         "holdout_ratio": None if report.holdout is None else report.holdout.residual_ratio,
         "exposure_spread_percent": report.exposure_spread_percent,  # divided out (0: one exposure)
+        **{f"defects_{kind}": None if report.defects is None else getattr(report.defects, kind)
+           for kind in ("hot", "dead", "stuck")},
         "time_s": seconds,
         "message": "; ".join(report.warnings),
     }

@@ -1,0 +1,106 @@
+"""A burst's defective photosites: found plane by plane (:mod:`solve.defects`), hot ones also from
+a dark frame, left out of the solve, counted, and repaired in corrected frames.
+
+A defect map is ``(H, W, C)`` uint8 like the frames: 0 healthy, else the kind's code
+(:data:`solve.defects.KINDS`).
+"""
+
+from __future__ import annotations
+
+from contextlib import contextmanager
+
+import numpy as np
+
+from .errors import EstimationError
+from .geometry.planes import plane_views
+from .solve import defects as D
+
+#: Above this fraction of defective photosites in a plane the burst is refused: no sensor is that
+#: broken, so the frames are not of one scene moving (a blank or corrupted frame, a wrong dark frame).
+MAX_DEFECTIVE = 0.05
+
+
+def find(frames: np.ndarray, cfa: str | None, channels: tuple[str, ...], *, excluded: np.ndarray | None,
+         exposures: np.ndarray, warp, saturation: float | None, dark_hot: np.ndarray | None = None) -> np.ndarray:
+    """The defect map of a burst ``frames`` ``(F, H, W, C)`` (DN after black, reference first),
+    ``warp`` its motion in frame pixels, ``excluded`` ``(F, H, W)`` the readings of moving objects,
+    ``dark_hot`` ``(H, W, C)`` the hot photosites a dark frame shows (:func:`hot_in_dark`)."""
+    scale = (1.0 / np.asarray(exposures, np.float32))[:, None, None]
+    if saturation is not None:
+        clipped = (frames >= saturation).any(axis=-1)
+        excluded = clipped if excluded is None else excluded | clipped
+    codes = np.zeros(frames.shape[1:], np.uint8)
+    mask = None if excluded is None else np.broadcast_to(excluded[..., None], frames.shape)
+    for name, pick, S in plane_views(cfa, channels):
+        plane = pick(frames) * scale  # at the reference's exposure
+        out = pick(codes[None])[0]
+        out[...] = D.detect(plane, warp.conjugate(S), excluded=None if mask is None else pick(mask))
+        if dark_hot is not None:
+            out[(out == D.HEALTHY) & pick(dark_hot[None])[0]] = D.HOT
+        fraction = float(np.mean(out > 0))
+        if fraction > MAX_DEFECTIVE:
+            raise EstimationError(f"{100 * fraction:.0f} % of the photosites of plane {name} read as defective "
+                                  f"(more than {100 * MAX_DEFECTIVE:.0f} %): the frames do not show one scene "
+                                  "moving (a blank or corrupted frame?) or the dark frame is not this sensor's")
+    return codes
+
+
+def hot_in_dark(dark: np.ndarray, cfa: str | None, channels: tuple[str, ...]) -> np.ndarray:
+    """Hot photosites of a master dark frame ``(H, W, C)``, plane by plane, ``(H, W, C)`` bool."""
+    hot = np.zeros(dark.shape, bool)
+    for _, pick, _ in plane_views(cfa, channels):
+        pick(hot[None])[0][...] = D.hot_in_dark(pick(dark[None])[0])
+    return hot
+
+
+@contextmanager
+def repaired(frames: np.ndarray, codes: np.ndarray | None, cfa: str | None, channels: tuple[str, ...]):
+    """``frames`` ``(F, H, W, C)`` with their defective photosites' readings replaced from their
+    neighbours (:func:`repair`) while the block runs, then put back.
+
+    In place, so the frames are held once (only the defects' readings are kept aside). Leaving
+    the defects out of the solve instead would lose every sample whose interpolation kernel
+    touches one: with Lanczos-4 (8x8), 8.6 % of them at a sensor's 0.14 % defects."""
+    bad = None if codes is None else np.nonzero(codes)
+    if bad is None or not len(bad[0]):
+        yield frames
+        return
+    kept = frames[(slice(None),) + bad].copy()
+    for t in range(len(frames)):
+        frames[t] = repair(frames[t], codes, cfa, channels)
+    try:
+        yield frames
+    finally:
+        frames[(slice(None),) + bad] = kept
+
+
+def leave_out(k: np.ndarray, confidence: np.ndarray, codes: np.ndarray, cfa: str | None,
+              channels: tuple[str, ...]) -> None:
+    """k = 1 and confidence 0 at the defects, in place; each plane's other estimated k scaled back
+    to mean 1 (the gauge, which counted the defects' k)."""
+    bad = codes > 0
+    if not bad.any():
+        return
+    k[bad] = 1.0
+    confidence[bad] = 0.0
+    for _, pick, _ in plane_views(cfa, channels):
+        kp, est = pick(k[None])[0], pick(confidence[None])[0] > 0
+        if est.any():
+            kp[est] /= np.float32(kp[est].mean(dtype=np.float64))
+
+
+def counts(codes: np.ndarray) -> dict[str, int]:
+    """Defective photosites by kind."""
+    return {kind: int(np.count_nonzero(codes == code)) for kind, code in D.KINDS.items()}
+
+
+def repair(frame: np.ndarray, codes: np.ndarray, cfa: str | None, channels: tuple[str, ...]) -> np.ndarray:
+    """``frame`` ``(H, W, C)`` with its defective photosites replaced from the healthy neighbours
+    of their plane (a CFA colour from its own colour's lattice)."""
+    if not codes.any():
+        return frame
+    out = np.array(frame, np.float32)
+    for _, pick, _ in plane_views(cfa, channels):
+        view = pick(out[None])[0]
+        view[...] = D.repair(view, pick(codes[None])[0] > 0)
+    return out
