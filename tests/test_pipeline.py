@@ -276,3 +276,17 @@ def test_colour_channels_and_a_later_reference_share_the_masks_and_the_solve():
     assert later.report.reference == "f2.exr"
     est = later.confidence[..., 0] > 0
     assert metrics.residual_fpn_percent(later.k[..., 0], burst.gain, est) < 1.2
+
+
+def test_a_forced_motion_model_the_frames_do_not_follow_is_refused(tmp_path):
+    # the hold-out frame is aligned by the same wrong model, so it cannot catch the misaligned map
+    # (docs/bench/holdout_check.py: forced translations on rotating bursts were accepted, 0.79x)
+    frames = tmp_path / "rotating"
+    save_burst(simulate_burst(shape=(96, 128), n_frames=6, seed=3, shake=Shake(rotation_deg=1.0)), frames, fmt="exr")
+    config = tmp_path / "translation.yaml"
+    config.write_text("motion:\n  model: translation\n")
+    result = CliRunner().invoke(main, ["estimate", str(frames), "-o", str(tmp_path / "out"), "-c", str(config), "-q"])
+    assert result.exit_code == 1
+    assert result.output.startswith("Error: motion.model translation leaves out how the frames move: "), result.output
+    assert "use motion.model auto or homography" in result.output
+    assert not (tmp_path / "out").exists() and not list(tmp_path.glob(".out.*"))

@@ -6,7 +6,8 @@
 
 Every burst is simulated with one frame more than the estimate gets: that unseen frame's MSE
 before over after correction says whether a map helps (frame 0 was fitted, and its MSE
-flatters k). Prints one JSON line per burst, then the counts. Takes about 17 minutes (rates) and 6
+flatters k); a burst the estimate refuses writes no map. Prints one JSON line per burst, then
+the counts. Takes about 17 minutes (rates) and 6
 (short).
 """
 
@@ -19,6 +20,7 @@ import sys
 import numpy as np
 
 from gainfpn_cli import api, solving
+from gainfpn_cli.errors import EstimationError
 from gainfpn_cli.geometry.planes import solve_grids
 from gainfpn_cli.geometry.warps import GlobalWarp
 from gainfpn_cli.sim.motion import Shake
@@ -98,8 +100,13 @@ def rates(cases=pool):
                            exposure=case["exposure"], scene=case["scene"], seed=100 + case["seed"],
                            shake=case.get("shake", Shake()), supersample=case.get("supersample", 4))
         frames = b.frames.astype(np.float32) - s.black_level
-        est = api.estimate(frames[:-1], cfa=s.cfa, saturation=s.white_level - s.black_level,
-                           **case.get("overrides", {}))
+        try:
+            est = api.estimate(frames[:-1], cfa=s.cfa, saturation=s.white_level - s.black_level,
+                               **case.get("overrides", {}))
+        except EstimationError as exc:  # refused: no map written
+            rows.append({"kind": case["kind"], "seed": case["seed"], "status": "refused", "error": str(exc)})
+            print(json.dumps(rows[-1]), flush=True)
+            continue
         inner = (slice(MARGIN, -MARGIN), slice(MARGIN, -MARGIN))
         unseen, ideal = frames[-1][inner], b.ideal[-1][inner]
 
@@ -112,9 +119,11 @@ def rates(cases=pool):
                "left_out_blocks": sum(p.left_out_blocks for p in est.report.holdout.planes.values())}
         rows.append(row)
         print(json.dumps(row), flush=True)
+    refused = [r for r in rows if r["status"] == "refused"]
+    rows = [r for r in rows if r["status"] != "refused"]
     harmful = [r for r in rows if r["unguarded"] < 1.0]
     helpful = [r for r in rows if r["unguarded"] >= 1.0]
-    print(json.dumps({
+    print(json.dumps({"refused": len(refused),
         "harmful": len(harmful), "accepted_harmful": sum(r["status"] != "rejected" for r in harmful),
         "helpful": len(helpful), "rejected_helpful": sum(r["status"] == "rejected" for r in helpful),
         "written_worse_than_none": sum(r["written"] < 0.999 for r in rows)}))

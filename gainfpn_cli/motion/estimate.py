@@ -32,13 +32,16 @@ MODELS, ALL_MODELS = list(_NAMES), list(_ALL_NAMES)
 class FrameFit:
     """One frame's fit: corners tracked from the reference and the inliers kept, the residual
     under the chosen model on them (None where it kept none), the frame's RMS displacement from
-    the reference, and each model's GRIC (lower is better)."""
+    the reference, each model's GRIC (lower is better), and where the chosen model is a global
+    one simpler than a homography, its RMS distance from the homography fitted to the same
+    points (over the frame: how much motion the simpler model leaves out)."""
 
     tracked: int
     inliers: int
     rms_px: float | None
     displacement_px: float
     gric: dict
+    misfit_px: float | None = None
 
 
 @dataclass(frozen=True)
@@ -149,9 +152,11 @@ def estimate_motion(
             info["rms"]["layers"] = float(np.sqrt(np.mean(kept**2))) if kept.size else None
     else:
         warp = _assemble(fits, chosen, shape)
+    simpler = chosen in MODEL_PARAMS and chosen != "homography"
     per_frame = [FrameFit(info["tracked"], info["inliers"], info["rms"][chosen],
-                          trajectory_rms(warp.homographies[t], np.eye(3), shape, step=8), info["gric"])
-                 for t, info in enumerate(per_frame, start=1)]
+                          trajectory_rms(warp.homographies[t], np.eye(3), shape, step=8), info["gric"],
+                          trajectory_rms(fit[chosen], fit["homography"], shape, step=8) if simpler else None)
+                 for t, (info, fit) in enumerate(zip(per_frame, fits), start=1)]
     if max(f.displacement_px for f in per_frame) < STILL_PX:
         raise EstimationError(
             f"no motion: every frame is within {STILL_PX} px of the reference, so the gain cannot be "
