@@ -1,0 +1,98 @@
+"""Never worse than no correction: the hold-out check's error rates on a small set of bursts.
+
+Each burst is simulated with one frame more than the estimate gets; that unseen frame's MSE
+before over after correction (against the noiseless truth) says whether a map helps. The traps
+are bursts whose unchecked map the truth shows to be worse than none (dark, aliased, few frames)
+and a translation forced on rotating frames; the others are good bursts, whose maps must be
+kept. ``docs/bench/holdout_check.py rates`` measures the same kinds on 48 larger bursts
+(docs/limits.md, "The hold-out check"). Measured here (160x192, seeds 0-5): every trap's
+unchecked map 0.15x-0.98x, every one rejected (k = 1 written) or refused; the good maps kept at
+8.4x-20.5x (8-bit) and 1.07x-1.25x (RGGB).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from gainfpn_cli import api, solving
+from gainfpn_cli.errors import EstimationError
+from gainfpn_cli.sim.motion import Shake
+from gainfpn_cli.sim.sensor import PRESETS
+from gainfpn_cli.sim.simulate import simulate_burst
+
+SHAPE = (160, 192)  # the smallest RGGB frames motion is tracked on are 128 px a side
+MARGIN = 12  # px left out at the border, where trajectories leave the frame
+MONO12 = dataclasses.replace(PRESETS["raw12"], cfa=None, fpn_pixel=0.01)
+#: kind -> (sensor, exposure (a pair: alternating by seed), frames fitted, scene (None: alternating by seed))
+TRAPS = {
+    "dark 12-bit, 5 frames": (MONO12, 0.05, 5, None),
+    "dark RGGB": (PRESETS["raw12"], (0.03, 0.06), 6, None),
+    "aliased RGGB": (dataclasses.replace(PRESETS["raw12"], fpn_pixel=0.005), 0.75, 6, "dead-leaves"),
+    "4 frames": (dataclasses.replace(PRESETS["paper"], fpn_pixel=0.01), 0.3, 4, None),
+}
+GOOD = {
+    "good 8-bit": (PRESETS["paper"], 0.75, 8, None),
+    "good RGGB": (PRESETS["raw12"], 0.5, 8, "procedural"),
+}
+SEEDS = [0] + [pytest.param(seed, marks=pytest.mark.slow) for seed in range(1, 6)]
+
+
+def _burst(spec, seed, **kwargs):
+    sensor, exposure, frames, scene = spec
+    scene = scene or ("procedural", "dead-leaves")[seed % 2]
+    exposure = exposure[seed % 2] if isinstance(exposure, tuple) else exposure
+    burst = simulate_burst(shape=SHAPE, n_frames=frames + 1, sensor=sensor, exposure=exposure, scene=scene,
+                           seed=100 + seed, **kwargs)
+    return burst, burst.frames.astype(np.float32) - sensor.black_level
+
+
+def _mse_ratios(spec, seed, monkeypatch) -> tuple[float, float, str]:
+    """The unseen frame's MSE before over after correction by the unchecked and the written map,
+    and the estimate's status."""
+    unchecked = {}
+    solve_planes = solving.solve_planes
+
+    def keep(*args, **kwargs):  # the map before the check (the check's own fit is on regions)
+        out = solve_planes(*args, **kwargs)
+        if kwargs.get("regions") is None:
+            unchecked["k"] = out[0].copy()
+        return out
+
+    monkeypatch.setattr(solving, "solve_planes", keep)
+    burst, frames = _burst(spec, seed)
+    sensor = spec[0]
+    est = api.estimate(frames[:-1], cfa=sensor.cfa, saturation=sensor.white_level - sensor.black_level,
+                       **{"solver.workers": 1})
+    inner = (slice(MARGIN, -MARGIN), slice(MARGIN, -MARGIN))
+    unseen, ideal = frames[-1][inner], burst.ideal[-1][inner]
+
+    def ratio(k):
+        return float(np.mean((unseen - ideal) ** 2) / np.mean((k[..., 0][inner] * unseen - ideal) ** 2))
+
+    return ratio(unchecked["k"]), ratio(est.k), est.report.status
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+@pytest.mark.parametrize("kind", sorted(TRAPS))
+def test_a_map_worse_than_none_is_not_written(kind, seed, monkeypatch):
+    unchecked, written, status = _mse_ratios(TRAPS[kind], seed, monkeypatch)
+    assert unchecked < 1.0, f"not a trap: the unchecked map helps ({unchecked:.3f}x)"
+    assert written >= 1.0 and status == "rejected", (unchecked, written, status)
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_a_forced_translation_on_rotating_frames_is_refused(seed):
+    _, frames = _burst((MONO12, 0.5, 8, None), seed, shake=Shake(rotation_deg=1.0))
+    with pytest.raises(EstimationError, match="motion.model translation leaves out how the frames move"):
+        api.estimate(frames[:-1], saturation=MONO12.white_level - MONO12.black_level,
+                     **{"solver.workers": 1, "motion.model": "translation"})
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+@pytest.mark.parametrize("kind", sorted(GOOD))
+def test_a_map_that_helps_is_kept(kind, seed, monkeypatch):
+    unchecked, written, status = _mse_ratios(GOOD[kind], seed, monkeypatch)
+    assert status == "accepted" and written >= 1.05, (unchecked, written, status)
