@@ -25,16 +25,16 @@ def find(frames: np.ndarray, cfa: str | None, channels: tuple[str, ...], *, excl
     """The defect map of a burst ``frames`` ``(F, H, W, C)`` (DN after black, reference first),
     ``warp`` its motion in frame pixels, ``excluded`` ``(F, H, W)`` the readings of moving objects,
     ``dark_hot`` ``(H, W, C)`` the hot photosites a dark frame shows (:func:`hot_in_dark`)."""
-    scale = (1.0 / np.asarray(exposures, np.float32))[:, None, None]
     if saturation is not None:
         clipped = (frames >= saturation).any(axis=-1)
         excluded = clipped if excluded is None else excluded | clipped
     codes = np.zeros(frames.shape[1:], np.uint8)
     mask = None if excluded is None else np.broadcast_to(excluded[..., None], frames.shape)
     for name, pick, S in plane_views(cfa, channels):
-        plane = pick(frames) * scale  # at the reference's exposure
+        plane = pick(frames)
         out = pick(codes[None])[0]
-        out[...] = D.detect(plane, warp.conjugate(S), excluded=None if mask is None else pick(mask))
+        out[...] = D.detect(plane, warp.conjugate(S), excluded=None if mask is None else pick(mask),
+                            exposures=exposures)
         if dark_hot is not None:
             out[(out == D.HEALTHY) & pick(dark_hot[None])[0]] = D.HOT
         fraction = float(np.mean(out > 0))

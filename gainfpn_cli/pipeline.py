@@ -39,9 +39,9 @@ MAX_DARK_FRACTION = 0.01
 #: RMS distance (px of the tracked images) past which a forced motion model simpler than a
 #: homography is refused: the frames move in a way it leaves out, so the map would be fitted to
 #: misaligned frames, and the hold-out frame, aligned the same way, cannot tell. Measured on
-#: 200x260 to 640x480 bursts: 0.002-0.047 px where the forced model is the true one (the
-#: homography's own noise; 0.047 an affine on a 1-degree rotation), 0.67-4.7 px for a translation
-#: on bursts rotating 0.3-1 degree.
+#: 96x128 to 640x480 bursts: 0.002-0.047 px where the forced model is the true one (the
+#: homography's own noise; 0.047 an affine on a 1-degree rotation), 0.67-5.3 px for a translation
+#: on bursts rotating 0.3-1 degree. Not measured on larger frames.
 MAX_MISFIT_PX = 0.1
 
 
@@ -133,8 +133,9 @@ def _estimate(burst: LoadedBurst, cfg: Config, solver: solving.Solver, progress:
                               f"(need at least {MIN_TRACK_SIDE} px per side{binned})")
     update = progress("motion", len(frames) - 1) if progress else None
     motion, exposures, exposure_report = _track(motion_images, burst, cfg, update)
+    names = [burst.paths[i].name for i in order[1:]]
     if cfg.motion.model != "auto":  # auto weighs what a simpler model leaves out against its noise (GRIC)
-        _check_misfit(motion, [burst.paths[i].name for i in order[1:]])
+        _check_misfit(motion, names, S_motion)
     in_frame = motion.warp.conjugate(np.linalg.inv(S_motion))  # the motion in frame pixels
     excluded, moving = _moving(frames, motion_images, motion.warp, burst.cfa, cfg, exposures)
     del motion_images
@@ -159,6 +160,8 @@ def _estimate(burst: LoadedBurst, cfg: Config, solver: solving.Solver, progress:
             # "layers" would also lose the base model auto chose for it)
             ignore = reference_cells(excluded, corrected.shape[1:], burst.cfa)  # no corner on what the round masked
             motion = estimate_motion(corrected, model=cfg.motion.model, ignore=ignore, exposures=exposures)
+            if cfg.motion.model != "auto":
+                _check_misfit(motion, names, S_motion)
             reason = f"{motion.reason}; refined on frames corrected by k (round {round_})"
             motion = dataclasses.replace(motion, reason=reason)
             in_frame = motion.warp.conjugate(np.linalg.inv(S_motion))
@@ -216,15 +219,19 @@ def _estimate(burst: LoadedBurst, cfg: Config, solver: solving.Solver, progress:
     return Estimate(k.astype(np.float32), confidence.astype(np.float32), report, codes)
 
 
-def _check_misfit(motion, names: list[str]) -> None:
-    """Refuse a forced motion model that leaves out how the frames move (:data:`MAX_MISFIT_PX`)."""
+def _check_misfit(motion, names: list[str], S_motion: np.ndarray) -> None:
+    """Refuse a forced motion model that leaves out how the frames move (:data:`MAX_MISFIT_PX`, in
+    pixels of the tracked images; ``S_motion`` maps them to frame pixels, for the message)."""
     misfits = [f.misfit_px or 0.0 for f in motion.per_frame]
     worst = int(np.argmax(misfits))
     if misfits[worst] > MAX_MISFIT_PX:
+        cell = abs(float(S_motion[0, 0]))  # frame pixels per tracked pixel: 2 for a CFA's 2x2 cells
+        unit = "px" if cell == 1 else f"px of the {cell:g}x{cell:g} cells motion is tracked on"
         raise EstimationError(
-            f"motion.model {motion.model} leaves out how the frames move: {names[worst]} is {misfits[worst]:.2f} px "
-            f"(RMS) from the perspective warp its tracked points fit, more than {MAX_MISFIT_PX} px, so the map "
-            "would be fitted to misaligned frames; use motion.model auto or homography")
+            f"motion.model {motion.model} leaves out how the frames move: in {names[worst]} it is "
+            f"{misfits[worst]:.3f} {unit} (RMS over the frame; at most {MAX_MISFIT_PX} allowed) from the homography "
+            "fitted to the same tracked points, so the map would be fitted to misaligned frames; use motion.model "
+            "auto or homography")
 
 
 def _track(motion_images, burst, cfg, progress) -> tuple:

@@ -23,7 +23,7 @@ from gainfpn_cli.sim.motion import Shake
 from gainfpn_cli.sim.sensor import PRESETS
 from gainfpn_cli.sim.simulate import simulate_burst
 
-SHAPE = (160, 192)  # the smallest RGGB frames motion is tracked on are 128 px a side
+SHAPE = (160, 192)  # RGGB frames need 128 px a side for motion to be tracked (on 2x2 cells)
 MARGIN = 12  # px left out at the border, where trajectories leave the frame
 MONO12 = dataclasses.replace(PRESETS["raw12"], cfa=None, fpn_pixel=0.01)
 #: kind -> (sensor, exposure (a pair: alternating by seed), frames fitted, scene (None: alternating by seed))

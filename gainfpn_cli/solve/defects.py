@@ -11,9 +11,9 @@ neighbours in its plane predicts it instead. Each photosite gets
 
 * its response, the median over frames of ``y_t / x_t``, and its score ``z``: the response's
   distance from the plane's median, in units of the robust spread of responses (gain FPN and
-  prediction error; the plane's, or its 5x5 neighbourhood's where larger: beside an edge or a
-  border the prediction misses for every photosite around) and of the photosite's own scatter
-  over the frames, in quadrature;
+  prediction error; the plane's, or where larger the median over the 5x5 neighbourhood of the
+  responses' distance from the plane's median: beside an edge or a border the prediction misses
+  for every photosite around) and of the photosite's own scatter over the frames, in quadrature;
 * the variance of its readings over the frames, against a healthy photosite's there.
 
 Kinds, in the order they are tested (:data:`KINDS` gives the codes of ``gain_map.exr``'s
@@ -61,7 +61,8 @@ QUANTISED_STEPS = 3.0
 #: Score (in standard deviations) past which a response is a defect's: the tails are heavier than
 #: a Gaussian's (prediction errors at edges). Measured on 6 defect-free 240x320 raw12 dead-leaves
 #: bursts (true motion, 8 frames, seeds 10-15): 6 flagged 0-0.13e-4 of the healthy photosites, 7
-#: none; 6 finds 34 % of the simulated hot ones there, 7 31 % (docs/bench/defects.py).
+#: none; on the same kind of bursts with 0.5 % defects (docs/bench/defects.py) 6 finds 34 % of
+#: the simulated hot ones, 7 31 %.
 Z_DEFECT = 6.0
 #: Fewest frames a photosite is tested on: with fewer, a median and a spread are too uncertain.
 MIN_FRAMES = 4
@@ -77,15 +78,17 @@ KERNEL = "cubic"
 
 
 def detect(frames: np.ndarray, warp, *, saturation: float | None = None,
-           excluded: np.ndarray | None = None) -> np.ndarray:
+           excluded: np.ndarray | None = None, exposures: np.ndarray | None = None) -> np.ndarray:
     """Defect code of every photosite of one plane, ``(H, W)`` uint8 (:data:`KINDS`).
 
-    ``frames`` ``(F, H, W)`` are at the reference's exposure (black subtracted), ``warp`` maps
-    between their grids (``pair(s, t, region)``, :mod:`geometry.warps`), ``excluded`` ``(F, H, W)``
-    marks readings that do not follow it (moving objects). Fewer than :data:`MIN_FRAMES` frames:
-    all healthy.
+    ``frames`` ``(F, H, W)`` are as read (black subtracted); ``exposures`` ``(F,)``, each frame's
+    exposure relative to the reference's, brings them to the reference's (a stuck photosite reads
+    one value as read, not after). ``warp`` maps between their grids (``pair(s, t,
+    region)``, :mod:`geometry.warps`), ``excluded`` ``(F, H, W)`` marks readings that do not follow
+    it (moving objects). Fewer than :data:`MIN_FRAMES` frames: all healthy.
     """
-    frames = np.asarray(frames, np.float32)
+    read = np.asarray(frames, np.float32)
+    frames = read if exposures is None else read / np.asarray(exposures, np.float32)[:, None, None]
     n_frames, h, w = frames.shape
     codes = np.zeros((h, w), np.uint8)
     if n_frames < MIN_FRAMES:
@@ -94,7 +97,7 @@ def detect(frames: np.ndarray, warp, *, saturation: float | None = None,
     if excluded is not None:
         good &= ~excluded
     x, valid = _predictions(frames, good, warp)
-    step = _quantisation_step(frames)
+    step = _quantisation_step(read)
     floor = max(MIN_LEVEL * float(np.quantile(x[valid], 0.99)) if valid.any() else 0.0, LEVEL_STEPS * step)
     usable = valid & (x > floor)
     response, scatter, n, lowest, highest = _responses(frames, x, usable)
@@ -117,7 +120,7 @@ def detect(frames: np.ndarray, warp, *, saturation: float | None = None,
     whole = usable.all(axis=0) & ~dead
     residual = (frames - response[None] * x)[:, whole]
     noise = _noise_model(x[:, whole].mean(axis=0), residual.var(axis=0, ddof=1), n_frames)
-    stuck = ~dead & _stuck(frames, good, x, valid, typical, noise, step)
+    stuck = ~dead & _stuck(frames, read, good, x, valid, typical, noise, step)
     hot = tested & ~dead & ~stuck & (z > Z_DEFECT) & (lowest > typical)
     for mask, code in ((dead, DEAD), (stuck, STUCK), (hot, HOT)):
         codes[mask] = code
@@ -185,8 +188,8 @@ def _responses(y: np.ndarray, x: np.ndarray, usable: np.ndarray) -> tuple[np.nda
     return np.nan_to_num(response), np.nan_to_num(scatter), n, np.nan_to_num(lowest), np.nan_to_num(highest)
 
 
-def _stuck(frames: np.ndarray, good: np.ndarray, x: np.ndarray, valid: np.ndarray, typical: float,
-           noise, step: float) -> np.ndarray:
+def _stuck(frames: np.ndarray, read: np.ndarray, good: np.ndarray, x: np.ndarray, valid: np.ndarray,
+           typical: float, noise, step: float) -> np.ndarray:
     """Photosites whose readings (unsaturated and following the motion in every frame) vary far
     less than a healthy one's would, where that is well past quantisation. A healthy one's
     variance is the smaller of two estimates, each too large somewhere: the median of its 8
@@ -194,15 +197,16 @@ def _stuck(frames: np.ndarray, good: np.ndarray, x: np.ndarray, valid: np.ndarra
     at its level (the noise model takes in the prediction's error on aliased planes). And that
     read one value, to a quantisation step, in every frame: beside an edge the prediction misses
     (a border) both estimates can be far too large for a healthy photosite, whose readings still
-    vary by its temporal noise."""
+    vary by its temporal noise. ``read`` are the ``frames`` as read (before the exposures were
+    divided out), where a stuck photosite's readings are one value."""
     whole = good.all(axis=0) & valid.all(axis=0)
-    spread = frames.var(axis=0)
-    around, _ = _ring_median(spread, whole)
+    around, _ = _ring_median(frames.var(axis=0), whole)
+    spread = read.var(axis=0)
     # robust: a prediction gone wrong in one frame (an edge) does not make the scene vary
     scene = MAD_TO_SIGMA * np.median(np.abs(x - np.median(x, axis=0)[None]), axis=0)
     expected = np.fmin(np.nan_to_num(around, nan=np.inf),
                        (typical * scene) ** 2 + noise(np.maximum(np.median(x, axis=0), 0.0)))
-    constant = np.ptp(frames, axis=0) <= step
+    constant = np.ptp(read, axis=0) <= step
     return whole & (expected > (QUANTISED_STEPS * step) ** 2) & (spread < STUCK_SPREAD**2 * expected) & constant
 
 
