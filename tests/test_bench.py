@@ -14,6 +14,8 @@ def test_a_small_plan_runs_every_kind_of_point(tmp_path, monkeypatch):
               Point("reference", "flat field", base, kind="flat-field"),
               Point("preset", "fast", base, preset="fast"),
               Point("flow_error", "0.8 px", base, kind="flow-error", flow_error_px=0.8),
+              Point("motion_model", "translation", BurstSpec(shape=(64, 80), n_frames=6, motion="4 px shake"),
+                    overrides={"motion.model": "translation"}),  # refused: the frames turn
               Point("motion_accuracy", "motion", BurstSpec(shape=(120, 160), n_frames=4, scene="procedural",
                                                            motion="25 px drift"), kind="motion", seeds=2)]
     monkeypatch.setattr(bench.measure, "plan", lambda quick, groups=(): points)  # the plan run() follows
@@ -26,10 +28,12 @@ def test_a_small_plan_runs_every_kind_of_point(tmp_path, monkeypatch):
     assert set(fast["timings"]) >= {"read_s", "motion_s", "solve_s", "write_s", "total_s"}
     assert flow["flow_error_px"] == 0.8 and flow["mse_ratio"] > 0
     assert len(motion["motion_worst_px"]) == 2 and max(motion["motion_worst_px"]) < 0.5  # sub-pixel on 2 seeds
+    assert rows["translation"]["refused"].startswith("motion.model translation leaves out how the frames move")
     assert all(r["peak_rss_mb"] > 10 for r in rows.values())
     summary = json.loads((tmp_path / "results.json").read_text())
-    assert summary["machine"]["cpus"] >= 1 and len(summary["points"]) == 5
+    assert summary["machine"]["cpus"] >= 1 and len(summary["points"]) == 6
     table = (tmp_path / "results.md").read_text()
+    assert "| motion_model | translation | 80x64x6 | refused |" in table
     assert all(f"| {label} |" in table for label in rows)
     assert not (tmp_path / "scratch").exists()  # the bursts are cleaned up
 
@@ -51,7 +55,7 @@ def test_quick_bench_from_the_command_line(tmp_path):
     out = tmp_path / "bench"
     result = CliRunner().invoke(main, ["bench", "--quick", "--quiet", "-o", str(out)])
     assert result.exit_code == 0, result.output
-    assert (out / "results.md").is_file() and "paper as published" in result.output
+    assert "paper as published" in (out / "results.md").read_text() and result.output == ""  # --quiet: nothing
 
 
 def test_groups_select_points_and_unknown_groups_are_named():

@@ -163,11 +163,15 @@ def _measure(point: Point, scratch: Path) -> dict:
 def _pipeline(point: Point, folder: Path, out: Path) -> dict:
     from ...api import estimate
     from ...config import load_config
+    from ...errors import EstimationError
     from ...sim.evaluate import evaluate
 
     cfg = load_config(preset=point.preset, overrides=point.overrides)
     t0 = time.perf_counter()
-    result = estimate(folder, config=cfg)  # read, motion, solve, as `gainfpn estimate` runs them
+    try:
+        result = estimate(folder, config=cfg)  # read, motion, solve, as `gainfpn estimate` runs them
+    except EstimationError as exc:  # refused, as `gainfpn estimate` would (a forced model the burst does not follow)
+        return {"refused": str(exc)}
     report = result.write(out, overwrite=True).report
     total = time.perf_counter() - t0
     passed = None if report.holdout is None else report.holdout.passed

@@ -29,7 +29,8 @@ def markdown(summary: dict) -> str:
                 f"; speed-up {r['parallel_speedup']:.2f}x"
         fmt = lambda key, spec: format(r[key], spec) if r.get(key) is not None else ""  # noqa: E731
         bound = f" ({fmt('residual_bound_percent', '.2f')})" if r.get("residual_bound_percent") is not None else ""
-        lines.append(f"| {r['group']} | {r['label']} | {burst} | {fmt('residual_fpn_percent', '.2f')}{bound} | "
+        residual = "refused" if r.get("refused") else fmt("residual_fpn_percent", ".2f") + bound
+        lines.append(f"| {r['group']} | {r['label']} | {burst} | {residual} | "
                      f"{fmt('mse_before', '.2f')} | {fmt('mse_after', '.2f')} | {fmt('mse_ratio', '.1f')} | "
                      f"{time_text} | {r['peak_rss_mb']:.0f} |")
     motion = [r for r in summary["points"] if r["kind"] == "motion"]
@@ -58,7 +59,8 @@ def plot(summary: dict, out_dir: Path) -> list[Path]:
 
     rows = summary["points"]
     written = []
-    timed = [r for r in rows if r["kind"] == "pipeline" and r["group"] not in ("scaling_pixels", "scaling_frames")]
+    timed = [r for r in rows if r["kind"] == "pipeline" and r["group"] not in ("scaling_pixels", "scaling_frames")
+             and not r.get("refused")]
     if timed:
         fig, ax = plt.subplots(figsize=(7, 4.5))
         for r in timed:
