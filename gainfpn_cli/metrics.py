@@ -38,6 +38,21 @@ def mse(frame: np.ndarray, ideal: np.ndarray, mask: np.ndarray | None = None) ->
     return float(np.mean(diff**2 if mask is None else diff[mask] ** 2))
 
 
+def confidence_deciles(k: np.ndarray, gain: np.ndarray, sigma: np.ndarray, mask: np.ndarray,
+                       parts: int = 10) -> list[float]:
+    """Is ``sigma`` (the written sigma_k) the error ``k`` has? Per ``parts``-quantile of ``sigma`` over
+    ``mask``, the RMS of the actual relative error of ``k`` (``k * a`` over its mean, minus 1) over the
+    RMS of ``sigma``: 1 is honest, above 1 the confidence is too high. Empty where ``mask`` holds fewer
+    pixels than ``parts``."""
+    product = (np.asarray(k, np.float64) * np.asarray(gain, np.float64))[mask]
+    predicted = np.asarray(sigma, np.float64)[mask]
+    if product.size < parts:
+        return []
+    error = product / product.mean() - 1.0
+    return [float(np.sqrt(np.mean(error[part] ** 2) / np.mean(predicted[part] ** 2)))
+            for part in np.array_split(np.argsort(predicted, kind="stable"), parts)]
+
+
 def interior_mask(shape: tuple[int, int], margin: int) -> np.ndarray:
     """True away from a ``margin``-pixel border (where trajectories leave the frame)."""
     mask = np.zeros(shape, bool)

@@ -17,7 +17,8 @@ def test_a_small_plan_runs_every_kind_of_point(tmp_path, monkeypatch):
               Point("motion_model", "translation", BurstSpec(shape=(64, 80), n_frames=6, motion="4 px shake"),
                     overrides={"motion.model": "translation"}),  # refused: the frames turn
               Point("motion_accuracy", "motion", BurstSpec(shape=(120, 160), n_frames=4, scene="procedural",
-                                                           motion="25 px drift"), kind="motion", seeds=2)]
+                                                           motion="25 px drift"), kind="motion", seeds=2),
+              Point("confidence", "dark", BurstSpec(shape=(64, 80), n_frames=6, exposure=0.15))]
     monkeypatch.setattr(bench.measure, "plan", lambda quick, groups=(): points)  # the plan run() follows
     rows = {r["label"]: r for r in bench.run(tmp_path, quick=True)}
     floor, flat, fast, flow, motion = (rows[k] for k in ("floor", "flat field", "fast", "0.8 px", "motion"))
@@ -31,10 +32,13 @@ def test_a_small_plan_runs_every_kind_of_point(tmp_path, monkeypatch):
     assert rows["translation"]["refused"].startswith("motion.model translation leaves out how the frames move")
     assert all(r["peak_rss_mb"] > 10 for r in rows.values())
     summary = json.loads((tmp_path / "results.json").read_text())
-    assert summary["machine"]["cpus"] >= 1 and len(summary["points"]) == 6
+    assert summary["machine"]["cpus"] >= 1 and len(summary["points"]) == 7
+    dark = rows["dark"]  # 64x80: too small for the two halves, so the solver's own sigma_k
+    assert len(dark["confidence_deciles"]) == 10 and dark["confidence_calibrated"] is False
     table = (tmp_path / "results.md").read_text()
     assert "| motion_model | translation | 80x64x6 | refused |" in table
     assert all(f"| {label} |" in table for label in rows)
+    assert "| dark | 80x64x6 |" in table.split("Confidence:")[1]  # its own table
     assert not (tmp_path / "scratch").exists()  # the bursts are cleaned up
 
 

@@ -3,9 +3,13 @@
 from __future__ import annotations
 
 import dataclasses
+import warnings
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
 
 from gainfpn_cli import api, defective
 from gainfpn_cli.files import read_exr_planes, write_exr
@@ -54,6 +58,15 @@ def test_stuck_photosites_are_found_in_frames_of_different_exposures():
     assert np.ptp(burst.exposures) > 0.1 and stuck.sum() >= 20
     # every one flagged, 27 of 29 as stuck (2 stuck near black read as dead), as without the jitter
     assert (codes[stuck] > 0).all() and (codes[stuck] == D.STUCK).mean() >= 0.9
+
+
+def test_strips_of_rows_change_nothing(monkeypatch):
+    # the per-photosite medians run STRIP_ROWS rows at a time (memory): any strip height, the same codes
+    burst = simulate_burst(shape=(120, 160), n_frames=6, sensor=MONO, scene="dead-leaves", exposure=0.15,
+                           defects=0.01, seed=3)
+    whole = _codes(burst, MONO)
+    monkeypatch.setattr(D, "STRIP_ROWS", 7)
+    assert np.count_nonzero(whole) > 100 and np.array_equal(_codes(burst, MONO), whole)
 
 
 def test_too_few_frames_find_nothing():
@@ -174,3 +187,15 @@ def test_a_dark_frame_marks_the_hot_photosites_the_burst_cannot_tell(tmp_path):
     assert result.report.defects.dark_frame and result.report.defects.hot >= 20
     without = api.estimate(tmp_path / "in", **{"solver.workers": 1})
     assert not (without.defects[..., 0][hot] > 0).any()  # the offsets are small beside the gain spread
+
+
+@settings(max_examples=60, deadline=None)
+@given(arrays(np.float32, st.tuples(st.integers(1, 9), st.integers(1, 4), st.integers(1, 5)),
+              elements=st.one_of(st.floats(-1e6, 1e6, width=32), st.just(np.nan))))
+def test_nan_median_is_numpys(stack):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN columns
+        expected = np.nanmedian(stack, axis=0)
+    got = D.nan_median(stack)
+    assert got.dtype == expected.dtype
+    np.testing.assert_array_equal(got, expected)

@@ -5,7 +5,7 @@ import pytest
 from click.testing import CliRunner
 
 from gainfpn_cli.cli import main
-from gainfpn_cli.metrics import gain_bound, mixture_spread, robust_spread
+from gainfpn_cli.metrics import confidence_deciles, gain_bound, mixture_spread, robust_spread
 
 READ, DN_PER_E = 3.0, 0.2
 
@@ -48,6 +48,22 @@ def test_mixture_spread_is_the_robust_spread_errors_of_those_sigmas_show():
     assert mixture_spread(np.full(10, 0.01)) == pytest.approx(0.01, rel=1e-5)
 
 
+def test_confidence_deciles_are_one_when_sigma_is_the_error_spread_and_scale_with_it():
+    rng = np.random.default_rng(4)
+    sigma = rng.uniform(0.001, 0.03, (300, 400))
+    gain = rng.uniform(0.9, 1.1, sigma.shape)
+    k = 1.7 / gain * (1.0 + sigma * rng.standard_normal(sigma.shape))  # any gauge: k's mean is not fixed
+    mask = np.ones(sigma.shape, bool)
+    mask[:, :5] = False
+    honest = confidence_deciles(k, gain, sigma, mask)
+    assert len(honest) == 10 and all(r == pytest.approx(1.0, abs=0.03) for r in honest), honest
+    # a confidence twice too high reads 2 in every tenth; errors that do not grow with sigma show as a slope
+    assert confidence_deciles(k, gain, sigma / 2, mask) == pytest.approx([2 * r for r in honest], rel=1e-9)
+    flat = confidence_deciles(1.0 / gain * (1.0 + 0.01 * rng.standard_normal(sigma.shape)), gain, sigma, mask)
+    assert flat[0] > 3 > 1 > flat[-1]
+    assert confidence_deciles(k, gain, sigma, np.zeros(sigma.shape, bool)) == []
+
+
 def test_evaluate_reports_the_bound_and_the_estimate_does_not_pass_it(tmp_path):
     # a 12-bit RGGB burst (sample_data's): 1 % pixel FPN, 8 frames, one held out to check
     runner = CliRunner()
@@ -61,3 +77,6 @@ def test_evaluate_reports_the_bound_and_the_estimate_does_not_pass_it(tmp_path):
     assert scores["bound_frames"] == 7
     assert 0.3 < scores["residual_bound_percent"] < 1.0  # 1 % FPN, shot noise of ~6000 e-: about 0.5 %
     assert scores["residual_fpn_percent"] > scores["residual_bound_percent"]
+    # the confidence's calibration, printed and recorded: 10 tenths of the written sigma_k
+    assert len(scores["confidence_deciles"]) == 10 and all(r > 0 for r in scores["confidence_deciles"])
+    assert "confidence: k's actual error over the sigma_k it states" in result.output

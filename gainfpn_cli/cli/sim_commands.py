@@ -129,6 +129,10 @@ def evaluate(est_dir, sim_dir, out_dir, overwrite, as_json, quiet):
     if scores.get("residual_bound_percent") is not None:
         click.echo(f"no estimate from {scores['bound_frames']} frames of this sensor can leave less than "
                    f"{scores['residual_bound_percent']:.2f} % gain FPN on average (Cramer-Rao bound)")
+    deciles = scores.get("confidence_deciles")
+    if deciles:
+        click.echo(f"confidence: k's actual error over the sigma_k it states, by tenths of sigma_k "
+                   f"{min(deciles):.2f}-{max(deciles):.2f} (1 is honest)")
 
 
 @main.command()

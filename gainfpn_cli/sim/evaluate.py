@@ -9,14 +9,17 @@ import numpy as np
 
 from ..errors import EstimationError, InputError
 from ..files import ATTR_CFA, find_frames, read_exr_planes, read_frame, stamp
-from ..metrics import mse, residual_fpn_percent
+from ..metrics import confidence_deciles, mse, residual_fpn_percent
 from ..outputs import read_gain_map
 from ..report import Report
+from ..solve.result import sigma_from_confidence
 from .truth import load_truth, residual_bound_percent
 
 
 def evaluate(out_dir: Path, sim_dir: Path) -> dict:
-    """Residual gain FPN and the paper's MSE before/after, against a simulation's truth.
+    """Residual gain FPN, the paper's MSE before/after and the confidence's calibration (per tenth of
+    the written sigma_k, k's actual error over it: ``metrics.confidence_deciles``), against a
+    simulation's truth.
 
     Refuses a truth that is not this estimate's: another size, CFA layout or white level
     (bit depth), or frames whose digests differ from those the estimate recorded."""
@@ -35,7 +38,8 @@ def evaluate(out_dir: Path, sim_dir: Path) -> dict:
     result = scores(k[..., 0], est, first.data[..., 0], truth)
     n_fit = len(report.inputs) - (1 if report.holdout else 0)  # one frame is held out to check k
     bound = residual_bound_percent(truth, est, n_fit)
-    return {**result, "residual_bound_percent": bound, "bound_frames": n_fit}
+    deciles = confidence_deciles(k[..., 0], truth.gain, sigma_from_confidence(confidence), est)
+    return {**result, "residual_bound_percent": bound, "bound_frames": n_fit, "confidence_deciles": deciles}
 
 
 def _read_report(out_dir: Path) -> Report:

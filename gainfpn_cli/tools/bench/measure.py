@@ -72,7 +72,7 @@ def _simulate(spec: BurstSpec, seed: int):
     return simulate_burst(shape=spec.shape, n_frames=spec.n_frames, seed=seed, scene=spec.scene,
                           sensor=_sensor(spec), supersample=spec.supersample, shake=shake,
                           moving_object=spec.moving_object or (0.1 if spec.parallax else 0.0),
-                          parallax=spec.parallax, exposure_jitter=spec.exposure_jitter)
+                          parallax=spec.parallax, exposure_jitter=spec.exposure_jitter, exposure=spec.exposure)
 
 
 class _TreePeak:
@@ -183,7 +183,9 @@ def _pipeline(point: Point, folder: Path, out: Path) -> dict:
         scores = evaluate(out, folder)
     shutil.rmtree(out, ignore_errors=True)
     timings = {**report.timings, "total_s": total}
-    return {**scores, "timings": timings, "motion_model": report.motion.model, "holdout_passed": passed}
+    calibrated = all(plane.confidence_calibrated for plane in report.planes.values())
+    return {**scores, "timings": timings, "motion_model": report.motion.model, "holdout_passed": passed,
+            "confidence_calibrated": calibrated}
 
 
 def _scores(k: np.ndarray, folder: Path, truth) -> dict:

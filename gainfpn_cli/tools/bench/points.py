@@ -9,6 +9,11 @@ from dataclasses import dataclass, field
 SENSOR = "paper"
 
 
+#: The simulator's exposure (scene value 1 = 75 % of the full well: dead leaves average 39 % of full scale).
+EXPOSURE = 0.75
+#: A dark burst's exposure: dead leaves and the procedural scene average 7-8 % of full scale (issue 21's 5-10 %).
+DARK_EXPOSURE = 0.15
+
 #: The hand-held motions the motion accuracy is held to (STILL_PX): the default shake, a 4 px shake with 0.5 degree
 #: rotations, and a 25 px drift.
 MOTIONS = {"shake": {}, "4 px shake": {"translation_px": 2.5, "rotation_deg": 0.5},
@@ -36,6 +41,7 @@ class BurstSpec:
     moving_object: float = 0.0  # a disk over this fraction of the frame, moving on its own
     motion: str = "shake"  # a key of MOTIONS
     sensor: str = SENSOR  # a simulate.PRESETS name; one with a CFA is written as DNG
+    exposure: float = EXPOSURE  # a scene value of 1 gives this fraction of the full well
 
     @property
     def key(self) -> str:
@@ -46,8 +52,9 @@ class BurstSpec:
         jitter = f"-e{self.exposure_jitter:g}" if self.exposure_jitter else ""
         mover = f"-o{self.moving_object:g}" if self.moving_object else ""
         motion = "" if self.motion == "shake" else f"-{self.motion}"
+        light = "" if self.exposure == EXPOSURE else f"-x{self.exposure:g}"
         return (f"{w}x{h}-f{self.n_frames}-s{self.seed}-{self.scene}-c{self.fpn_column:g}-ss{self.supersample}"
-                f"{waves}{near}{jitter}{mover}{motion}{sensor}")
+                f"{waves}{near}{jitter}{mover}{motion}{light}{sensor}")
 
     @property
     def megapixels(self) -> float:
@@ -95,6 +102,8 @@ def _all_points(quick: bool) -> list[Point]:
         points += [Point("motion_model", "wobble 1 px, auto", dataclasses.replace(base, wobble_px=1.0))]
         points += [Point("motion_accuracy", "shake, 10 % object", dataclasses.replace(
             base, scene="procedural", n_frames=6, seed=3, moving_object=0.1), kind="motion", seeds=MOTION_SEEDS)]
+        points += _confidence_points(scenes=("procedural",), sensors=("paper",), exposures=(DARK_EXPOSURE,),
+                                     frames=(8,))
         return points
     points += [Point("block_size", f"paper, {b}x{b}", base, preset="paper", overrides={"solver.block_size": b})
                for b in (1, 3, 9, 17, 33)]
@@ -123,6 +132,7 @@ def _all_points(quick: bool) -> list[Point]:
     jittered = dataclasses.replace(base, exposure_jitter=0.03)  # auto-exposure / flicker: measured and divided out
     points += [Point("exposure", f"3 % exposure jitter, {mode}", jittered, overrides={"input.exposure": mode})
                for mode in ("per-frame", "fixed")]
+    points += _confidence_points()
     points += [Point("refine", "1 refinement round", base, overrides={"motion.refine_rounds": 1})]
     points += [Point("scene", "procedural (smoother)", dataclasses.replace(base, scene="procedural"))]
     points += [Point("scene", "3 % pixel + 4 % column", dataclasses.replace(base, fpn_column=0.04))]
@@ -143,3 +153,12 @@ def _all_points(quick: bool) -> list[Point]:
     points.append(Point("scaling_frames", "balanced, 16 frames, 12 MP, 12-bit RGGB DNG",
                         BurstSpec(shape=(3000, 4000), n_frames=16, supersample=2, sensor="raw12"), preset="balanced"))
     return points
+
+
+def _confidence_points(scenes=("dead-leaves", "procedural"), sensors=("paper", "raw12"),
+                       exposures=(EXPOSURE, DARK_EXPOSURE), frames=(5, 16)) -> list[Point]:
+    """Is the written confidence the error k has? 240x320 bursts (RGGB planes of 120x160: the two-halves
+    calibration needs 10 000 pixels a plane), sharp and soft scenes, EXR and DNG, bright and dark."""
+    return [Point("confidence", f"{scene}, {sensor}, {'bright' if exposure == EXPOSURE else 'dark'}, {n} frames",
+                  BurstSpec(shape=(240, 320), n_frames=n, seed=7, scene=scene, sensor=sensor, exposure=exposure))
+            for scene in scenes for sensor in sensors for exposure in exposures for n in frames]

@@ -8,6 +8,9 @@ import numpy as np
 
 from .points import MOTION_TARGET_PX
 
+#: The confidence is honest where k's actual error is within 25 % of the sigma_k it states (issue 21).
+CALIBRATION_LOW, CALIBRATION_HIGH = 0.75, 1.25
+
 
 def markdown(summary: dict) -> str:
     """The results as a Markdown table, one row per point."""
@@ -17,7 +20,7 @@ def markdown(summary: dict) -> str:
              "| group | point | burst | residual FPN % (bound) | MSE before | MSE after | ratio | time s "
              "(read / motion / solve / write) | peak RSS MB |",
              "|---|---|---|---|---|---|---|---|---|"]
-    for r in (r for r in summary["points"] if r["kind"] != "motion"):
+    for r in (r for r in summary["points"] if r["kind"] != "motion" and r["group"] != "confidence"):
         b = r["burst"]
         burst = f"{b['shape'][1]}x{b['shape'][0]}x{b['n_frames']}"
         t = r.get("timings", {})
@@ -44,10 +47,34 @@ def markdown(summary: dict) -> str:
             lines.append(f"| {r['label']} | {b['shape'][1]}x{b['shape'][0]}x{b['n_frames']} | {b['scene']} | "
                          f"{len(worst)} ({b['seed']}-{b['seed'] + len(worst) - 1}) | {np.median(worst):.3f} | "
                          f"{worst.max():.3f} | {r['motion_over_target']} | {r['timings']['motion_s']:.2f} |")
+    lines += _confidence_table([r for r in summary["points"] if r["group"] == "confidence"])
     exponents = {r.get("fitted_time_exponent") for r in summary["points"]} - {None}
     if exponents:
         lines += ["", f"Time grows as (pixels x frames)^{exponents.pop():.2f} (balanced preset, least squares in log-log)."]
     return "\n".join(lines) + "\n"
+
+
+def _confidence_table(rows: list[dict]) -> list[str]:
+    if not rows:
+        return []
+    lines = ["", "Confidence: per tenth of the written sigma_k, k's actual error (RMS) over the sigma_k it states "
+             f"(RMS); 1 is honest, the target {CALIBRATION_LOW}-{CALIBRATION_HIGH} in every tenth. 'calibrated': "
+             "sigma_k measured on two halves of the frames (6 fitted frames or more), else the solver's own.", "",
+             "| point | burst | residual FPN % (bound) | MSE ratio | calibrated | tenths, lowest to highest sigma_k "
+             "| outside target |", "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        b = r["burst"]
+        burst = f"{b['shape'][1]}x{b['shape'][0]}x{b['n_frames']}"
+        deciles = r.get("confidence_deciles") or []
+        if r.get("refused") or not deciles:
+            why = "refused" if r.get("refused") else "hold-out rejected: k = 1 written"
+            lines.append(f"| {r['label']} | {burst} | {why} | | | | |")
+            continue
+        outside = sum(not CALIBRATION_LOW <= d <= CALIBRATION_HIGH for d in deciles)
+        lines.append(f"| {r['label']} | {burst} | {r['residual_fpn_percent']:.2f} ({r['residual_bound_percent']:.2f}) "
+                     f"| {r['mse_ratio']:.2f} | {'yes' if r.get('confidence_calibrated') else 'no'} | "
+                     f"{' '.join(f'{d:.2f}' for d in deciles)} | {outside} |")
+    return lines
 
 
 def plot(summary: dict, out_dir: Path) -> list[Path]:
