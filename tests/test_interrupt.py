@@ -23,12 +23,15 @@ pytestmark = pytest.mark.skipif(not Path("/proc").is_dir(), reason="finds worker
 # a file, so that the signal arrives inside that step.
 DRIVER = textwrap.dedent(
     """
-    import sys, time
+    import signal, sys, time
     from pathlib import Path
     import gainfpn_cli.solving as solving
     import gainfpn_cli.outputs as outputs
     from gainfpn_cli.cli import main
 
+    # Ctrl-C as a terminal delivers it to a foreground command: a suite started as a background
+    # job of a non-interactive shell hands SIGINT down ignored, and Python keeps it ignored.
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     stage, ready = sys.argv[1], Path(sys.argv[2])
     if stage == "solve":
         solve = solving.solve_planes
