@@ -177,22 +177,3 @@ def test_the_pixel_model_shrinks_by_the_measured_error():
     error = measured.k - truth
     assert np.sqrt(np.mean(error**2)) / np.sqrt(np.mean(measured.sigma**2)) == pytest.approx(1.0, abs=0.1)
     assert np.std(measured.k - truth) < np.std(plain.k - truth)
-
-
-def test_a_larger_sigma_k_is_never_written_smaller():
-    # the halves see only the error they do not share: where k's error is mostly shared (a model
-    # error every fit makes alike, as a forced homography's on a nearer plane), the measured
-    # factor drops; the written sigma_k still grows with the solver's, and above the largest
-    # sigma_k measured the solver's own is not scaled down
-    rng = np.random.default_rng(5)
-    truth, k, confidence, halves = _halves(rng)
-    sigma = sigma_from_confidence(confidence)
-    seen = np.broadcast_to(np.linspace(0, 1, k.shape[1]) < 0.6, k.shape)  # the rest: shared error only
-    shared = 4 * sigma * rng.standard_normal(k.shape)
-    k, halves = np.where(seen, k, truth + shared), Halves(*(np.where(seen, m, truth + shared) if i % 2 == 0 else m
-                                                            for i, m in enumerate(vars(halves).values())))
-    calibration = calibrate(k, sigma, halves, np.ones(k.shape), confidence > 0)
-    solver = np.geomspace(0.001, 0.05, 200)
-    written = calibration.sigma(solver)
-    assert np.all(np.diff(written) >= 0)
-    assert np.all(written[solver > sigma.max() * 1.01] >= solver[solver > sigma.max() * 1.01])

@@ -109,30 +109,19 @@ class Halves:
 @dataclass(frozen=True)
 class Calibration:
     """What two halves measured (:func:`calibrate`): the factor that scales ``sigma_k`` to k's
-    actual error, at the RMS ``sigma_k`` of each decile (between them, the scaled ``sigma_k`` is
-    interpolated in ``log sigma_k``; beyond them, the end factors apply), the largest ``sigma_k``
-    the halves saw, and the pixel FPN prior ``s^2``."""
+    actual error, at the RMS ``sigma_k`` of each decile (between them, interpolated in
+    ``log sigma_k``; beyond them, the end ones), and the pixel FPN prior ``s^2``."""
 
     log_sigma: np.ndarray
     factor: np.ndarray
     prior: float
-    log_sigma_max: float = np.inf
 
     def sigma(self, sigma: np.ndarray) -> np.ndarray:
-        """``sigma_k`` (the solver's) scaled to k's actual error; inf stays inf. Above the largest
-        ``sigma_k`` the halves saw nothing was measured, so there the solver's own is never scaled
-        down: the halves fit a central region, and an error of another kind outside it (a nearer
-        plane a forced homography mis-registers) shows only in the solver's local residuals."""
+        """``sigma_k`` (the solver's) scaled to k's actual error; inf stays inf."""
         sigma = np.asarray(sigma, np.float32)
         finite = np.isfinite(sigma) & (sigma > 0)
-        log = np.log(np.where(finite, sigma, 1), dtype=np.float64)
-        log_factor = np.log(self.factor)
-        # between deciles the scaled sigma_k is interpolated (so it never dips), beyond them scaled
-        written = np.interp(log, self.log_sigma, self.log_sigma + log_factor)
-        written = np.where(log < self.log_sigma[0], log + log_factor[0], written)
-        written = np.where(log > self.log_sigma[-1], log + log_factor[-1], written)
-        written = np.where(log > self.log_sigma_max, np.maximum(written, log), written)
-        return np.where(finite, np.exp(written).astype(np.float32), sigma)
+        scale = np.interp(np.log(np.where(finite, sigma, 1)), self.log_sigma, self.factor).astype(np.float32)
+        return np.where(finite, sigma * scale, sigma)
 
 
 #: Fewest pixels both halves and the full fit estimated for :func:`calibrate` to measure anything:
@@ -162,11 +151,7 @@ def calibrate(k: np.ndarray, sigma: np.ndarray, halves: Halves, base: np.ndarray
         error = -float(np.mean((k_a[part] - k_full[part]) * (k_b[part] - k_full[part])))
         log_sigma.append(0.5 * np.log(square))
         factor.append(max(np.sqrt(max(error, 0.0) / square), MIN_FACTOR))
-    # a larger sigma_k never written smaller than a lesser one's: the halves fit a central region,
-    # and a decile of it can miss the error the frame's pixels of that sigma_k have
-    log_sigma, factor = np.array(log_sigma), np.array(factor)
-    factor = np.maximum.accumulate(np.exp(log_sigma) * factor) / np.exp(log_sigma)
-    return Calibration(log_sigma, factor, prior, float(np.log(s[order[-1]])))
+    return Calibration(np.array(log_sigma), np.array(factor), prior)
 
 
 @dataclass(frozen=True)
