@@ -1,6 +1,7 @@
 """Detection rates of solve.defects.detect on simulated bursts, with their true motion.
 
-    python docs/bench/defects.py
+    python docs/bench/defects.py        # the table of docs/limits.md
+    python docs/bench/defects.py hot    # hot photosites found, by offset over (level x pixel FPN)
 
 Per sensor preset, scene, exposure and frame count: the percentage of each simulated kind
 flagged (in parentheses: flagged as that kind), over two 240x320 bursts with 0.5 % defects; and
@@ -46,7 +47,35 @@ def run(scene="dead-leaves", preset="paper", n=8, exposure=0.75, frac=0.005, see
     out["fp"] = f"{(total - fp[0]) / total * 1e4:.2f}e-4 {fp[1:]}"
     print(f"{scene:12s} {preset:6s} n={n} exp={exposure}", out, f"{time.perf_counter() - t0:.1f}s", flush=True)
 
-if __name__ == "__main__":
+def hot_by_offset(edges=(0, 2, 4, 6, 8, 10, 15, np.inf)):
+    """Per sensor, scene and exposure (8 frames, two 240x320 bursts, 0.5 % defects): the share of
+    the hot photosites flagged, binned by their offset over (their mean level x the pixel FPN):
+    an offset ``b`` at level ``x`` reads as a gain ``1 + b / x``, seen only beyond the gain spread."""
+    edges = np.asarray(edges, float)
+    for preset in ("raw12", "paper"):
+        sensor = PRESETS[preset]
+        for scene in ("dead-leaves", "procedural"):
+            for exposure in (0.75, 0.075):
+                found, total = np.zeros(len(edges) - 1), np.zeros(len(edges) - 1)
+                for seed in (0, 1):
+                    b = simulate_burst(shape=(240, 320), n_frames=8, sensor=sensor, scene=scene, exposure=exposure,
+                                       defects=0.005, seed=seed)
+                    codes = codes_of(b, sensor)
+                    level = b.gain[None] * b.ideal
+                    offset = np.mean(b.frames.astype(np.float64) - sensor.black_level - level, axis=0)
+                    hot = b.defects == D.KINDS["hot"]
+                    bins = np.digitize(offset[hot] / (level.mean(axis=0)[hot] * sensor.fpn_pixel), edges) - 1
+                    bins = np.clip(bins, 0, len(edges) - 2)
+                    total += np.bincount(bins, minlength=len(edges) - 1)
+                    found += np.bincount(bins, weights=(codes[hot] > 0).astype(float), minlength=len(edges) - 1)
+                rates = " ".join(f"{f / t * 100:.0f}%({int(t)})" if t else "-" for f, t in zip(found, total))
+                print(f"{preset:6s} {scene:12s} {exposure:5}: {rates}", flush=True)
+    print("bins of offset / (level x pixel FPN):", edges)
+
+
+if __name__ == "__main__" and sys.argv[1:] == ["hot"]:
+    hot_by_offset()
+elif __name__ == "__main__":
     for preset in ("paper", "raw12"):
         for scene in ("dead-leaves", "procedural"):
             for exposure, n in ((0.75, 8), (0.075, 8), (0.75, 5)):
