@@ -16,13 +16,13 @@ def markdown(summary: dict) -> str:
     """The results as a Markdown table, one row per point."""
     m = summary["machine"]
     lines = [f"Measured by `gainfpn bench{' --quick' if summary['quick'] else ''}` in {summary['duration_s']:.0f} s "
-             f"on {m['cpus']} CPUs ({m['processor']}, {m['platform']}, Python {m['python']}).", "",
-             "| group | point | burst | residual FPN % (bound) | MSE before | MSE after | ratio | time s "
-             "(read / motion / solve / write) | peak RSS MB |",
-             "|---|---|---|---|---|---|---|---|---|"]
-    for r in (r for r in summary["points"] if r["kind"] != "motion" and r["group"] != "confidence"):
-        b = r["burst"]
-        burst = f"{b['shape'][1]}x{b['shape'][0]}x{b['n_frames']}"
+             f"on {m['cpus']} CPUs ({m['processor']}, {m['platform']}, Python {m['python']})."]
+    rows = [r for r in summary["points"] if r["kind"] != "motion" and r["group"] != "confidence"]
+    if rows:  # a run of the confidence or motion_accuracy group alone has only its own table
+        lines += ["", "| group | point | burst | residual FPN % (bound) | MSE before | MSE after | ratio | time s "
+                  "(read / motion / solve / write) | peak RSS MB |", "|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        burst = _burst(r["burst"])
         t = r.get("timings", {})
         stages = " / ".join(f"{t[k]:.2f}" for k in ("read_s", "motion_s", "solve_s", "write_s") if k in t)
         total = t.get("total_s", t.get("solve_s"))
@@ -44,7 +44,7 @@ def markdown(summary: dict) -> str:
                   "|---|---|---|---|---|---|---|---|"]
         for r in motion:
             b, worst = r["burst"], np.array(r["motion_worst_px"])
-            lines.append(f"| {r['label']} | {b['shape'][1]}x{b['shape'][0]}x{b['n_frames']} | {b['scene']} | "
+            lines.append(f"| {r['label']} | {_burst(b)} | {b['scene']} | "
                          f"{len(worst)} ({b['seed']}-{b['seed'] + len(worst) - 1}) | {np.median(worst):.3f} | "
                          f"{worst.max():.3f} | {r['motion_over_target']} | {r['timings']['motion_s']:.2f} |")
     lines += _confidence_table([r for r in summary["points"] if r["group"] == "confidence"])
@@ -52,6 +52,11 @@ def markdown(summary: dict) -> str:
     if exponents:
         lines += ["", f"Time grows as (pixels x frames)^{exponents.pop():.2f} (balanced preset, least squares in log-log)."]
     return "\n".join(lines) + "\n"
+
+
+def _burst(b: dict) -> str:
+    """A burst as width x height x frames."""
+    return f"{b['shape'][1]}x{b['shape'][0]}x{b['n_frames']}"
 
 
 def _confidence_table(rows: list[dict]) -> list[str]:
@@ -63,8 +68,7 @@ def _confidence_table(rows: list[dict]) -> list[str]:
              "| point | burst | residual FPN % (bound) | MSE ratio | calibrated | tenths, lowest to highest sigma_k "
              "| outside target |", "|---|---|---|---|---|---|---|"]
     for r in rows:
-        b = r["burst"]
-        burst = f"{b['shape'][1]}x{b['shape'][0]}x{b['n_frames']}"
+        burst = _burst(r["burst"])
         deciles = r.get("confidence_deciles") or []
         if r.get("refused") or not deciles:
             why = "refused" if r.get("refused") else "hold-out rejected: k = 1 written"
