@@ -17,6 +17,7 @@ import time
 import numpy as np
 
 from gainfpn_cli import api
+from gainfpn_cli.metrics import confidence_deciles
 from gainfpn_cli.sim.sensor import PRESETS
 from gainfpn_cli.sim.simulate import simulate_burst
 from gainfpn_cli.solve.result import sigma_from_confidence
@@ -53,13 +54,10 @@ def case(scene, preset, exposure, frames, seed=7):
     use &= conf > 0
     p = k * a
     err = p / p[use].mean() - 1
-    sig = sigma_from_confidence(conf)
-    sv, ev = sig[use], err[use]
-    order = np.argsort(sv)
-    deciles = [round(float(np.sqrt(np.mean(ev[i] ** 2) / np.mean(sv[i] ** 2))), 2)
-               for i in np.array_split(order, 10)] if sv.size else []  # none if every plane was rejected
+    estimated = bool(use.any())  # none if every plane was rejected
+    deciles = [round(d, 2) for d in confidence_deciles(k, a, sigma_from_confidence(conf), use)]
     return dict(scene=scene, preset=preset, exposure=exposure, frames=frames, s=round(dt, 1), status=e.report.status,
-                mse_unseen=round(mse, 3), residual=round(float(100 * np.std(err[use])), 3) if sv.size else None,
+                mse_unseen=round(mse, 3), residual=round(float(100 * np.std(err[use])), 3) if estimated else None,
                 prnu_pixel=round(e.report.prnu_percent.pixel, 2),
                 truth_pixel=round(100 * float(np.std(a / a.mean())), 2), deciles=deciles,
                 models={name: plane.fpn_model for name, plane in e.report.planes.items()})
