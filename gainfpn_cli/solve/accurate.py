@@ -41,7 +41,8 @@ from ..geometry.warps import STILL_PX, FieldWarp, GlobalWarp, as_warp, trajector
 from ..metrics import MAD_TO_SIGMA
 from ..parallel import map_ordered
 from .phase import phase_weighted
-from .result import AccurateStats, GainResult, confidence_from_sigma, out_of_range, regauge
+from .result import AccurateStats, GainResult, confidence_from_sigma
+from .tiling import blend, windows
 
 
 @dataclass(frozen=True)
@@ -206,42 +207,11 @@ def _prepare(frames, motion, options: AccurateOptions, saturation, excluded, exp
 
 
 def _assemble(tiles, results, shape, options: AccurateOptions) -> GainResult:
-    """The tiles' k and confidence blended into one plane (``results`` freed as they are), gauged."""
-    h, w = shape
-    # float32 frame-sized arrays (a 12 MP frame: 48 MB each); tiles' results are freed as they are blended
-    k_sum = np.zeros((h, w), np.float32)
-    conf_sum = np.zeros((h, w), np.float32)
-    weight_sum = np.zeros((h, w), np.float32)
-    iterations = []
-    for i, tile in enumerate(tiles):
-        k, conf, its = results[i]
-        results[i] = None
-        weight = (_ramp(k.shape, tile, (h, w), options.halo) * (conf > 0)).astype(np.float32)  # where it estimated
-        sl = (slice(tile.y0, tile.y0 + k.shape[0]), slice(tile.x0, tile.x0 + k.shape[1]))
-        k_sum[sl] += weight * k
-        conf_sum[sl] += weight * conf
-        weight_sum[sl] += weight
-        iterations.append(its)
-    estimated = weight_sum > 0
-    k = np.divide(k_sum, weight_sum, out=np.ones((h, w), np.float32), where=estimated)
-    confidence = np.divide(conf_sum, weight_sum, out=np.zeros((h, w), np.float32), where=estimated)
-    del k_sum, conf_sum, weight_sum
-    absurd = out_of_range(k, estimated, options.gain_range)
-    estimated &= ~absurd
-    confidence[absurd] = 0.0
-    if not estimated.any():
-        raise EstimationError("no pixel could be compared between frames (all clipped, dark or out of view)")
-    k[~estimated] = 1.0
-    regauge(k, estimated)
-    k[~estimated] = 1.0
-    stats = AccurateStats(
-        tiles=len(tiles),
-        gmres_iterations=tuple(iterations),
-        unestimated_pixels=int((~estimated).sum()),
-        out_of_range_pixels=int(absurd.sum()),
-        median_confidence=float(np.median(confidence[estimated])),
-    )
-    return GainResult(k.astype(np.float32), confidence.astype(np.float32), stats)
+    """The tiles' k and confidence blended into one gauged plane (:func:`tiling.blend`)."""
+    b = blend([(t.y0, t.x0) for t in tiles], results, shape, halo=options.halo, gain_range=options.gain_range)
+    stats = AccurateStats(tiles=len(tiles), gmres_iterations=b.iterations, unestimated_pixels=b.unestimated_pixels,
+                          out_of_range_pixels=b.out_of_range_pixels, median_confidence=b.median_confidence)
+    return GainResult(b.k, b.confidence, stats)
 
 
 def _check_motion(homographies: np.ndarray, shape: tuple[int, int]) -> None:
@@ -254,18 +224,13 @@ def _check_motion(homographies: np.ndarray, shape: tuple[int, int]) -> None:
 
 
 def _tiles(frames, excluded, motion, saturation, options, exposures=None) -> list[_Tile]:
-    n, h, w = frames.shape
-    core, halo = options.tile, options.halo
-    anchors = range(n) if options.anchors == "all" else [0]
-    pairs = tuple((s, t) for s in anchors for t in partner_frames(s, n, options.partners))
+    anchors = range(frames.shape[0]) if options.anchors == "all" else [0]
+    pairs = tuple((s, t) for s in anchors for t in partner_frames(s, frames.shape[0], options.partners))
     tiles = []
-    for cy in range(0, h, core):
-        for cx in range(0, w, core):
-            y0, x0 = max(0, cy - halo), max(0, cx - halo)
-            y1, x1 = min(h, cy + core + halo), min(w, cx + core + halo)
-            crop = (slice(None), slice(y0, y1), slice(x0, x1))
-            tiles.append(_Tile(y0, x0, frames[crop], None if excluded is None else excluded[crop], pairs, motion,
-                               saturation, options, exposures))
+    for y0, x0, y1, x1 in windows(frames.shape[1:], options.tile, options.halo):
+        crop = (slice(None), slice(y0, y1), slice(x0, x1))
+        tiles.append(_Tile(y0, x0, frames[crop], None if excluded is None else excluded[crop], pairs, motion,
+                           saturation, options, exposures))
     return tiles
 
 
@@ -277,18 +242,6 @@ def partner_frames(s: int, n: int, count: int) -> list[int]:
             if t != s and t not in order:
                 order.append(t)
     return order if count <= 0 else order[:count]
-
-
-def _ramp(shape, tile: _Tile, full: tuple[int, int], halo: int) -> np.ndarray:
-    """Blend weight: 1 in the tile's core, falling linearly to ~0 across its halo."""
-
-    def axis(start, length, size):
-        pos = np.arange(start, start + length)
-        lo = pos - start + 0.5 if start > 0 else np.full(length, np.inf)
-        hi = start + length - pos - 0.5 if start + length < size else np.full(length, np.inf)
-        return np.clip(np.minimum(lo, hi) / max(halo, 1), 1e-3, 1.0)
-
-    return np.outer(axis(tile.y0, shape[0], full[0]), axis(tile.x0, shape[1], full[1]))
 
 
 def _solve_tile(tile: _Tile) -> tuple[np.ndarray, np.ndarray, int]:
