@@ -24,6 +24,7 @@ from .motion.masks import moving_masks
 from .report import Defects, Exposure, FrameMotion, Layer, Motion, Prnu, Report
 from .solve.accurate import power_of_two_scale
 from .solve.result import sigma_from_confidence
+from .solving import CALIBRATED_METHODS
 
 #: Fewest frames a burst needs; the hold-out check needs one more, since a
 #: fit on 2 frames is never trusted. Measured: 2 frames, residual FPN 7.5-11 %
@@ -186,8 +187,8 @@ def _estimate(burst: LoadedBurst, cfg: Config, solver: solving.Solver, progress:
     if codes is not None:  # no gain is known there; corrected frames repair them (output.repair)
         defective.leave_out(k, confidence, codes, burst.cfa, burst.channels)
     sigma = sigma_from_confidence(confidence)
-    # only the accurate solver's confidence is a calibrated standard error
-    calibrated = (confidence > 0).any() and all(p.method == "accurate" for p in plane_reports.values())
+    # only the accurate and scene solvers' confidence is a calibrated standard error
+    calibrated = (confidence > 0).any() and all(p.method in CALIBRATED_METHODS for p in plane_reports.values())
     report = Report(
         prnu_percent=Prnu.combined({name: p.input_fpn_percent for name, p in plane_reports.items()
                                     if p.input_fpn_percent is not None}),

@@ -20,7 +20,13 @@ from .solve.blocks import solve_paper
 from .solve.fpnmodel import Halves, select_model
 from .solve.holdout import holdout_checks, pooled
 from .solve.kkt import SolveOptions
-from .solve.result import GainResult, confidence_from_sigma, physical, sigma_from_confidence
+from .solve.result import (
+    GainResult,
+    confidence_from_sigma,
+    physical,
+    sigma_from_confidence,
+)
+from .solve.scene import SceneOptions, solve_scene_many
 
 
 @dataclass(frozen=True)
@@ -31,6 +37,7 @@ class Solver:
     paper: SolveOptions
     block_size: int
     accurate: AccurateOptions
+    scene: SceneOptions
     fpn_model: str | None  # None: chosen by AIC
     gain_range: tuple[float, float]
     workers: int
@@ -42,9 +49,21 @@ class Solver:
                                    gauge_sigma=s.gauge_sigma, tile=s.tile, robust_rounds=s.robust_rounds,
                                    gain_range=s.gain_range,
                                    phase_weights=s.phase_weights == "all" or (s.phase_weights == "auto" and mosaic))
+        scene = SceneOptions(scale=s.scene_scale, steps=s.scene_steps, gauge_sigma=s.scene_gauge_sigma,
+                             gain_range=s.gain_range)
         return cls(s.method, SolveOptions(lam=s.lam, max_condition=s.max_condition, k_range=s.gain_range),
-                   s.block_size, accurate, None if s.fpn_model == "auto" else s.fpn_model, s.gain_range, s.workers,
-                   executor)
+                   s.block_size, accurate, scene, None if s.fpn_model == "auto" else s.fpn_model, s.gain_range,
+                   s.workers, executor)
+
+    @property
+    def calibrated(self) -> bool:
+        """Whether the solver's confidence is a predicted standard error (so that the FPN model, the
+        halves' calibration and the hold-out's disagreement can use it)."""
+        return self.method in CALIBRATED_METHODS
+
+
+#: The solvers whose confidence is ``1 / (1 + (sigma_k / 1 %)^2)`` with a predicted sigma_k.
+CALIBRATED_METHODS = ("accurate", "scene")
 
 
 def grids_of(burst: LoadedBurst, frames: np.ndarray, method: str) -> list:
@@ -60,8 +79,10 @@ def solve_planes(burst, frames, excluded, exposures, used: slice, in_frame, solv
 
     ``regions`` (grid name -> (rows, columns) slices) solves only there (k = 1 and confidence 0
     elsewhere); ``models`` (plane name -> FPN model) forces each plane's model; ``split`` measures
-    each plane's sigma_k and pixel FPN with two more fits, on the even and the odd frames of ``used``
-    (on :func:`central` regions, and with :data:`MIN_SPLIT_FRAMES` or more), and ``calibrations``
+    the accurate solver's sigma_k and pixel FPN of each plane with two more fits, on the even and the
+    odd frames of ``used`` (on :func:`central` regions, and with :data:`MIN_SPLIT_FRAMES` or more; the
+    scene solver's sigma_k is measured by its noise probe, and halves of a burst are too few frames
+    for its latent scene), and ``calibrations``
     (plane name -> Calibration) gives them as measured before."""
     k, confidence, solved = solve_raw(burst, frames, excluded, exposures, used, in_frame, solver, progress,
                                       regions=regions)
@@ -75,10 +96,11 @@ def solve_planes(burst, frames, excluded, exposures, used: slice, in_frame, solv
     for name, pick, _ in plane_views(burst.cfa, burst.channels):  # the gauge and the FPN model, plane by plane
         report, structured, calibration = solved[name], False, None
         kp = pick(k)
-        if solver.method == "accurate":
+        if solver.calibrated:
             plane_halves = None if halves is None else Halves(*(pick(m) for half in halves for m in half))
             model = select_model(kp, pick(confidence), force=(models or {}).get(name) or solver.fpn_model,
-                                 halves=plane_halves, calibration=(calibrations or {}).get(name))
+                                 halves=plane_halves, calibration=(calibrations or {}).get(name),
+                                 sigma_calibrated=solver.method == "scene")
             report = dataclasses.replace(report, fpn_model=model.chosen, fpn_model_aic=model.scores,
                                          input_fpn_percent=model.split, confidence_calibrated=model.sigma is not None)
             kp, structured, calibration = model.k, model.chosen not in ("pixel", "none"), model.calibration
@@ -125,13 +147,15 @@ def solve_raws(burst, frames, excluded, exposures, useds, in_frame, solver: Solv
                 grid_motion = grid_motion.conjugate(np.array([[1.0, 0, columns.start], [0, 1.0, rows.start],
                                                               [0, 0, 1]]))
             jobs.append((i, grid, (grid_frames, grid_left_out, grid_motion, exposures[used])))
-    if solver.method == "accurate" and len(useds) > 1:
+    if solver.method in ("accurate", "scene") and len(useds) > 1:
         update = progress("solve halves", 0) if progress else None
-        results = solve_accurate_many(
-            [dict(frames=f, motion=m, saturation=burst.saturation, excluded=x, exposures=e) for _, _, (f, x, m, e)
-             in jobs], options=solver.accurate, workers=solver.workers, progress=update, executor=solver.executor)
+        problems = [dict(frames=f, motion=m, saturation=burst.saturation, excluded=x, exposures=e,
+                         options=scene_options(solver.scene, grid)) for _, grid, (f, x, m, e) in jobs]
+        many = solve_accurate_many if solver.method == "accurate" else solve_scene_many
+        results = many(problems, options=solver.accurate if solver.method == "accurate" else solver.scene,
+                       workers=solver.workers, progress=update, executor=solver.executor)
     else:
-        results = [solve_grid(f, x, m, burst.saturation, solver, progress, grid.name, exposures=e)
+        results = [solve_grid(f, x, m, burst.saturation, solver, progress, grid, exposures=e)
                    for _, grid, (f, x, m, e) in jobs]
     out = [(np.ones(frames.shape[1:], np.float32), np.zeros(frames.shape[1:], np.float32), {}) for _ in useds]
     for (i, grid, _), result in zip(jobs, results):
@@ -188,7 +212,7 @@ def check(burst, frames, excluded, exposures, n_fit, in_frame, solver: Solver, r
         models={name: p.fpn_model for name, p in reports.items()}, calibrations=calibrations)
     checks = holdout_checks(frames, excluded, exposures, in_frame, k_check, grids=grids, saturation=burst.saturation,
                             regions=regions, disagreement=disagreement(k_check, confidence_check, k, confidence,
-                                                                       calibrated=solver.method == "accurate"))
+                                                                       calibrated=solver.calibrated))
     failed = [grid for grid in grids if not checks[grid.name].passed(CHECK_Z)]
     every = pooled(checks.values())
     planes = {name: PlaneCheck(c.ratio, c.standard_error, c.passed(CHECK_Z), c.left_out) for name, c in checks.items()}
@@ -218,9 +242,19 @@ def rejection(holdout: Holdout, failed) -> str:
             f"motion would help")
 
 
-def solve_grid(frames, excluded, motion, saturation, solver: Solver, progress, name,
+def scene_options(options: SceneOptions, grid) -> SceneOptions:
+    """The scene solver's options on ``grid``: a photosite is ``1 / scale`` of the grid's pitch wide
+    (a CFA plane's photosites are every other one of the mosaic)."""
+    return dataclasses.replace(options, aperture=1.0 / float(abs(grid.S[0, 0])))
+
+
+def solve_grid(frames, excluded, motion, saturation, solver: Solver, progress, grid,
                exposures=None) -> GainResult:
-    update = progress(f"solve {name}", 0) if progress else None
+    update = progress(f"solve {grid.name}", 0) if progress else None
+    if solver.method == "scene":
+        return solve_scene_many([dict(frames=frames, motion=motion, saturation=saturation, excluded=excluded,
+                                      exposures=exposures, options=scene_options(solver.scene, grid))],
+                                workers=solver.workers, progress=update, executor=solver.executor)[0]
     if solver.method == "paper":
         if excluded is not None:  # the published form takes zeroed pixels as missing
             frames = np.where(excluded, np.float32(0), frames)

@@ -64,9 +64,9 @@ def test_a_plane_the_check_rejects_is_written_as_k_1_and_the_others_are_kept(mon
     frames = b.frames.astype(np.float32) - PRESETS["raw12"].black_level
     solve = solving.solve_grid
 
-    def spoil_red(frames_, excluded, motion, saturation, solver, progress, name, exposures=None):
-        result = solve(frames_, excluded, motion, saturation, solver, progress, name, exposures=exposures)
-        if name.startswith("R"):
+    def spoil_red(frames_, excluded, motion, saturation, solver, progress, grid, exposures=None):
+        result = solve(frames_, excluded, motion, saturation, solver, progress, grid, exposures=exposures)
+        if grid.name.startswith("R"):
             noise = 0.1 * np.random.default_rng(0).standard_normal(result.k.shape).astype(np.float32)
             result = GainResult(result.k * (1 + noise), result.confidence, result.stats)
         return result

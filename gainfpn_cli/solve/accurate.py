@@ -37,12 +37,11 @@ import numpy as np
 
 from ..errors import EstimationError
 from ..geometry.resample import KERNELS, bounded, low_pass, sample, valid_samples
-from ..geometry.warps import STILL_PX, FieldWarp, GlobalWarp, as_warp, trajectory_rms
+from ..geometry.warps import FieldWarp, GlobalWarp
 from ..metrics import MAD_TO_SIGMA
-from ..parallel import map_ordered
 from .phase import phase_weighted
 from .result import AccurateStats, GainResult, confidence_from_sigma
-from .tiling import blend, windows
+from .tiling import blend, checked_problem, solve_tiles, windows
 
 
 @dataclass(frozen=True)
@@ -155,9 +154,9 @@ def solve_accurate(
     executor : parallel.DaskExecutor, optional
         Solve the tiles there instead.
     """
-    tiles = _prepare(frames, motion, options, saturation, excluded, exposures)
-    results = map_ordered(_solve_tile, tiles, workers=workers, progress=progress, executor=executor)
-    return _assemble(tiles, results, np.shape(frames)[1:], options)
+    return solve_accurate_many([dict(frames=frames, motion=motion, saturation=saturation, excluded=excluded,
+                                     exposures=exposures)], options=options, workers=workers, progress=progress,
+                               executor=executor)[0]
 
 
 def solve_accurate_many(problems, *, options: AccurateOptions = AccurateOptions(), workers: int = 2, progress=None,
@@ -167,34 +166,18 @@ def solve_accurate_many(problems, *, options: AccurateOptions = AccurateOptions(
     of one tile each still run on every worker. The same results as one call each."""
     prepared = [_prepare(p["frames"], p["motion"], options, p.get("saturation"), p.get("excluded"),
                          p.get("exposures")) for p in problems]
-    results = map_ordered(_solve_tile, [t for tiles in prepared for t in tiles], workers=workers, progress=progress,
-                          executor=executor)
-    solved, start = [], 0
-    for p, tiles in zip(problems, prepared):
-        solved.append(_assemble(tiles, results[start:start + len(tiles)], np.shape(p["frames"])[1:], options))
-        start += len(tiles)
-    return solved
+    shapes = iter([np.shape(p["frames"])[1:] for p in problems])
+    return solve_tiles(prepared, _solve_tile, lambda tiles, results: _assemble(tiles, results, next(shapes), options),
+                       workers=workers, progress=progress, executor=executor)
 
 
 def _prepare(frames, motion, options: AccurateOptions, saturation, excluded, exposures) -> list:
     """The tiles of one problem, its inputs checked (see :func:`solve_accurate`)."""
-    frames = np.asarray(frames, dtype=np.float32)
-    if frames.ndim != 3 or frames.shape[0] < 2:
-        raise ValueError(f"frames must have shape (F, H, W) with F >= 2, got {frames.shape}")
-    if excluded is not None and np.shape(excluded) != frames.shape:
-        raise ValueError(f"excluded must have the frames' shape {frames.shape}, got {np.shape(excluded)}")
-    motion = as_warp(motion)
-    if motion.n_frames != frames.shape[0]:
-        raise ValueError(f"motion is given for {motion.n_frames} frames, there are {frames.shape[0]}")
     if options.kernel not in KERNELS:
         raise ValueError(f"kernel must be one of {', '.join(KERNELS)}, got {options.kernel!r}")
     if options.anchors not in ("all", "reference"):
         raise ValueError(f"anchors must be 'all' or 'reference', got {options.anchors!r}")
-    if exposures is not None:
-        exposures = tuple(float(c) for c in np.ravel(exposures))
-        if len(exposures) != frames.shape[0] or not all(np.isfinite(c) and c > 0 for c in exposures):
-            raise ValueError(f"exposures must be {frames.shape[0]} positive numbers, got {exposures}")
-    _check_motion(motion.homographies, frames.shape[1:])
+    frames, motion, exposures = checked_problem(frames, motion, excluded, exposures)
     h, w = frames.shape[1:]
     radius = KERNELS[options.kernel][1]
     if min(h, w) <= 2 * radius:
@@ -212,15 +195,6 @@ def _assemble(tiles, results, shape, options: AccurateOptions) -> GainResult:
     stats = AccurateStats(tiles=len(tiles), gmres_iterations=b.iterations, unestimated_pixels=b.unestimated_pixels,
                           out_of_range_pixels=b.out_of_range_pixels, median_confidence=b.median_confidence)
     return GainResult(b.k, b.confidence, stats)
-
-
-def _check_motion(homographies: np.ndarray, shape: tuple[int, int]) -> None:
-    moved = [trajectory_rms(H, np.eye(3), shape, step=8) for H in homographies]
-    if max(moved) < STILL_PX:
-        raise EstimationError(
-            f"no motion: every frame is within {STILL_PX} px of the reference, so the gain cannot be "
-            "estimated (pan or shake the camera during the burst)"
-        )
 
 
 def _tiles(frames, excluded, motion, saturation, options, exposures=None) -> list[_Tile]:

@@ -214,7 +214,8 @@ def _level(shape: np.ndarray, sums: _Sums) -> np.ndarray:
 
 
 def select_model(k: np.ndarray, confidence: np.ndarray, *, force: str | None = None,
-                 halves: Halves | None = None, calibration: Calibration | None = None) -> FPNModel:
+                 halves: Halves | None = None, calibration: Calibration | None = None,
+                 sigma_calibrated: bool = False) -> FPNModel:
     """Pick the model by AIC (or ``force`` one) and report the FPN split.
 
     Parameters
@@ -229,6 +230,10 @@ def select_model(k: np.ndarray, confidence: np.ndarray, *, force: str | None = N
         (:func:`calibrate`).
     calibration : Calibration, optional
         One measured before (for another fit of the same plane), used as it is.
+    sigma_calibrated : bool
+        The solver's ``sigma_k`` is already k's actual error (the scene solver's noise probe):
+        without halves or a calibration it is taken as it is (factor 1), with the prior measured
+        from the deviations.
     """
     if force is not None and force not in MODELS:
         raise ValueError(f"force must be one of {', '.join(MODELS)}, got {force!r}")
@@ -244,6 +249,8 @@ def select_model(k: np.ndarray, confidence: np.ndarray, *, force: str | None = N
         sigma = calibration.sigma(sigma)
         fit = _Fits.of(k, sigma, est)
     deviation = np.where(est, k - fit.base, np.float32(0))
+    if calibration is None and sigma_calibrated:
+        calibration = Calibration(np.zeros(1), np.ones(1), pixel_prior_variance(deviation[est], sigma[est]))
     prior = pixel_prior_variance(deviation[est], sigma[est]) if calibration is None else calibration.prior
     shrink = np.where(est, np.float32(prior) / (np.float32(prior) + sigma**2), np.float32(0))
     scores = {**fit.scores, "pixel": 2.0 * max(int(est.sum()) - 1, 0)}  # every pixel's own k fits exactly

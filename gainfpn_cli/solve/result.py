@@ -24,13 +24,13 @@ class GainResult:
         estimated pixels.
     confidence : ndarray of float32, shape (H, W)
         See the module: 0 where unestimated.
-    stats : PaperStats or AccurateStats or None
+    stats : PaperStats, AccurateStats, SceneStats or None
         What the solver counted on the way.
     """
 
     k: np.ndarray
     confidence: np.ndarray
-    stats: PaperStats | AccurateStats | None = None
+    stats: PaperStats | AccurateStats | SceneStats | None = None
 
 
 @dataclass(frozen=True)
@@ -64,12 +64,28 @@ class AccurateStats:
     method = "accurate"
 
 
-def stats_from_json(method: str, data: dict) -> PaperStats | AccurateStats:
+@dataclass(frozen=True)
+class SceneStats:
+    """The scene solver's counts: tiles, each tile's conjugate-gradient iterations over its
+    Gauss-Newton steps, unestimated pixels (of which ``out_of_range_pixels`` had a k outside the
+    gain range) and the median confidence of the estimated ones."""
+
+    tiles: int
+    cg_iterations: tuple[int, ...]
+    unestimated_pixels: int
+    out_of_range_pixels: int
+    median_confidence: float
+
+    method = "scene"
+
+
+def stats_from_json(method: str, data: dict) -> PaperStats | AccurateStats | SceneStats:
     """The stats of ``method`` from a dict holding (at least) their fields."""
-    cls = {"paper": PaperStats, "accurate": AccurateStats}[method]
+    cls = {"paper": PaperStats, "accurate": AccurateStats, "scene": SceneStats}[method]
     values = {f.name: data[f.name] for f in fields(cls)}
-    if cls is AccurateStats:
-        values["gmres_iterations"] = tuple(values["gmres_iterations"])
+    for name in ("gmres_iterations", "cg_iterations"):
+        if name in values:
+            values[name] = tuple(values[name])
     return cls(**values)
 
 

@@ -12,6 +12,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import EstimationError
+from ..geometry.warps import STILL_PX, as_warp, trajectory_rms
+from ..parallel import map_ordered
 from .result import out_of_range, regauge
 
 
@@ -79,3 +81,44 @@ def blend(origins, results, shape: tuple[int, int], *, halo: int, gain_range: tu
     k[~estimated] = 1.0
     return Blended(k.astype(np.float32), confidence.astype(np.float32), tuple(iterations),
                    int((~estimated).sum()), int(absurd.sum()), float(np.median(confidence[estimated])))
+
+
+def checked_problem(frames, motion, excluded, exposures):
+    """A tiled solver's inputs checked: ``frames`` as float32 ``(F, H, W)``, ``motion`` as a warp
+    of F frames, ``exposures`` as F positive floats (or None); ``excluded`` must match the frames."""
+    frames = np.asarray(frames, dtype=np.float32)
+    if frames.ndim != 3 or frames.shape[0] < 2:
+        raise ValueError(f"frames must have shape (F, H, W) with F >= 2, got {frames.shape}")
+    if excluded is not None and np.shape(excluded) != frames.shape:
+        raise ValueError(f"excluded must have the frames' shape {frames.shape}, got {np.shape(excluded)}")
+    motion = as_warp(motion)
+    if motion.n_frames != frames.shape[0]:
+        raise ValueError(f"motion is given for {motion.n_frames} frames, there are {frames.shape[0]}")
+    if exposures is not None:
+        exposures = tuple(float(c) for c in np.ravel(exposures))
+        if len(exposures) != frames.shape[0] or not all(np.isfinite(c) and c > 0 for c in exposures):
+            raise ValueError(f"exposures must be {frames.shape[0]} positive numbers, got {exposures}")
+    check_motion(motion.homographies, frames.shape[1:])
+    return frames, motion, exposures
+
+
+def check_motion(homographies: np.ndarray, shape: tuple[int, int]) -> None:
+    moved = [trajectory_rms(H, np.eye(3), shape, step=8) for H in homographies]
+    if max(moved) < STILL_PX:
+        raise EstimationError(
+            f"no motion: every frame is within {STILL_PX} px of the reference, so the gain cannot be "
+            "estimated (pan or shake the camera during the burst)"
+        )
+
+
+def solve_tiles(prepared: list[list], solve_tile, assemble, *, workers: int, progress=None, executor=None) -> list:
+    """``assemble(tiles, results)`` of each problem's ``tiles`` in ``prepared``, every tile solved by
+    ``solve_tile`` in one go (:func:`parallel.map_ordered`): problems of one tile each still run on
+    every worker, and the results are those of one call per problem."""
+    results = map_ordered(solve_tile, [t for tiles in prepared for t in tiles], workers=workers, progress=progress,
+                          executor=executor)
+    solved, start = [], 0
+    for tiles in prepared:
+        solved.append(assemble(tiles, results[start:start + len(tiles)]))
+        start += len(tiles)
+    return solved
