@@ -180,7 +180,7 @@ class SolverConfig:
     gauge_sigma: float = _key(8.0, positive_float, "accurate method: gain structure wider than this (px) is gauged to 1")
     tile: int = _key(512, positive_int, "accurate method: tiles of this side (px) are solved in parallel")
     scene_scale: int = _key(2, positive_int, "scene method: latent scene samples per pixel pitch, on each axis")
-    scene_steps: int = _key(3, positive_int, "scene method: Gauss-Newton steps")
+    scene_steps: int = _key(2, positive_int, "scene method: Gauss-Newton steps")
     # 32, not the accurate method's 8: the scene model sees the middle band, and the gauge's removal of a
     # white FPN's own low band is then its largest error (noise-free 240x320x8 dead leaves: 0.188 % at 8,
     # 0.077 % at 32, 0.062 % with none).

@@ -76,8 +76,8 @@ class SceneOptions:
     aperture: float = 1.0
     smoothness: float = 1e-4
     gain_prior: float = 0.05
-    steps: int = 3
-    cg_iterations: int = 30
+    steps: int = 2
+    cg_iterations: int = 20
     cg_rtol: float = 1e-4
     robust_scale: float | None = 3.0
     gauge_sigma: float = 32.0
@@ -166,20 +166,22 @@ def observation_matrix(points: list[np.ndarray], fine: tuple[int, int], scale: i
 
     fh, fw = fine
     width = scale * aperture
-    rows = []
+    m = int(np.ceil(width)) + 2
+    offsets = (np.arange(m, dtype=np.int32)[:, None] * fw + np.arange(m, dtype=np.int32)).ravel()
+    data, indices, inside = [], [], []
     for xy in points:
         tu, wu = box_spline_weights(scale * xy[:, 0] + (scale - 1) / 2, width)
         tv, wv = box_spline_weights(scale * xy[:, 1] + (scale - 1) / 2, width)
-        inside = (tu[:, 0] >= 0) & (tu[:, -1] < fw) & (tv[:, 0] >= 0) & (tv[:, -1] < fh)
-        cols = np.clip(tv, 0, fh - 1)[:, :, None] * fw + np.clip(tu, 0, fw - 1)[:, None, :]
-        vals = np.where(inside[:, None, None], wv[:, :, None] * wu[:, None, :], 0.0)
-        rows.append((cols.reshape(len(xy), -1), vals.reshape(len(xy), -1), inside))
-    per_row = rows[0][0].shape[1]
-    n = sum(len(r[2]) for r in rows)
-    matrix = sp.csr_matrix((np.concatenate([r[1].ravel() for r in rows]),
-                            np.concatenate([r[0].ravel() for r in rows]).astype(np.int32),
-                            np.arange(0, n * per_row + 1, per_row)), shape=(n, fh * fw))
-    return matrix, np.concatenate([r[2] for r in rows])
+        seen = (tu[:, 0] >= 0) & (tu[:, -1] < fw) & (tv[:, 0] >= 0) & (tv[:, -1] < fh)
+        corner = np.where(seen, tv[:, 0] * fw + tu[:, 0], 0).astype(np.int32)  # out of view: zero weights
+        indices.append((corner[:, None] + offsets).ravel())
+        wv = np.where(seen[:, None], wv, 0.0).astype(np.float32)
+        data.append((wv[:, :, None] * wu.astype(np.float32)[:, None, :]).ravel())
+        inside.append(seen)
+    n = sum(len(xy) for xy in points)
+    matrix = sp.csr_matrix((np.concatenate(data), np.concatenate(indices),
+                            np.arange(0, n * m * m + 1, m * m, dtype=np.int32)), shape=(n, fh * fw))
+    return matrix, np.concatenate(inside)
 
 
 def gradient_gram(fine: tuple[int, int]):
@@ -229,7 +231,7 @@ def _solve_tile(tile: _Tile) -> tuple[np.ndarray, np.ndarray, int]:
     fine = (opt.scale * h, opt.scale * w)
     points = [positions(tile.motion.pair(t, 0, region), (h, w)).reshape(-1, 2) for t in range(n_frames)]
     A, inside = observation_matrix(points, fine, opt.scale, opt.aperture)
-    At = A.T.tocsr()
+    A = _Sampling(A)
     valid = good.reshape(-1) & inside
     y = np.where(valid, frames.reshape(-1), 0.0)
     seen = valid.reshape(n_frames, -1).sum(axis=0)
@@ -238,14 +240,14 @@ def _solve_tile(tile: _Tile) -> tuple[np.ndarray, np.ndarray, int]:
         return np.ones((h, w)), np.zeros((h, w)), 0
 
     weight = valid.astype(np.float64)
-    count = At @ weight
-    s = np.divide(At @ (weight * y), count, out=np.full(At.shape[0], np.mean(y[valid])), where=count > 0)
+    count = A.back(weight)
+    s = np.divide(A.back(weight * y), count, out=np.full(count.size, np.mean(y[valid])), where=count > 0)
     a = np.ones(h * w)
     gram = gradient_gram(fine)
     iterations = 0
     noise = (np.var(y[valid]) * 1e-4, 0.0)  # the first step: uniform weights
     for step in range(opt.steps):
-        predicted = A @ s
+        predicted = A.forward(s)
         residual = y - np.tile(a, n_frames) * predicted
         if step > 0:
             noise = noise_variance(residual[valid], predicted[valid])
@@ -253,11 +255,11 @@ def _solve_tile(tile: _Tile) -> tuple[np.ndarray, np.ndarray, int]:
         weight = valid / variance
         if step > 0 and opt.robust_scale is not None:
             weight /= 1.0 + residual**2 / (opt.robust_scale**2 * variance)
-        ds, da, its = _gauss_newton_step(A, At, gram, weight, residual, predicted, a, s, opt)
+        ds, da, its = _gauss_newton_step(A, gram, weight, residual, predicted, a, s, opt)
         s += ds
         a += da
         iterations += its
-    predicted = A @ s
+    predicted = A.forward(s)
     residual = y - np.tile(a, n_frames) * predicted
     k = 1.0 / np.where(est & (a > 0), a, 1.0).reshape(h, w)
     est = est.reshape(h, w) & (a.reshape(h, w) > 0)
@@ -267,9 +269,9 @@ def _solve_tile(tile: _Tile) -> tuple[np.ndarray, np.ndarray, int]:
     # (seeded by the tile's place, so that any worker draws the same)
     rng = np.random.default_rng([PROBE_SEED, tile.y0, tile.x0])
     probe = np.where(weight > 0, rng.standard_normal(y.size) * np.sqrt(variance), 0.0)
-    ds, da, its = _gauss_newton_step(A, At, gram, weight, probe, predicted, a, s, opt, priors=False)
+    ds, da, its = _gauss_newton_step(A, gram, weight, probe, predicted, a, s, opt, priors=False)
     iterations += its
-    fitted = probe - np.tile(a, n_frames) * (A @ ds) - predicted * np.tile(da, n_frames)
+    fitted = probe - np.tile(a, n_frames) * A.forward(ds) - predicted * np.tile(da, n_frames)
     confidence = _confidence(residual, fitted, probe, da, variance, weight, a, est, n_frames)
     return k.astype(np.float32), confidence.astype(np.float32), iterations
 
@@ -278,7 +280,8 @@ def _solve_tile(tile: _Tile) -> tuple[np.ndarray, np.ndarray, int]:
 PROBE_SEED = 20261124
 
 
-def _gauss_newton_step(A, At, gram, weight, residual, predicted, a, s, opt: SceneOptions, *, priors: bool = True):
+def _gauss_newton_step(A: "_Sampling", gram, weight, residual, predicted, a, s, opt: SceneOptions, *,
+                       priors: bool = True):
     """One Gauss-Newton step ``(ds, da)`` of the weighted squares plus priors, ``a`` eliminated, and
     the conjugate-gradient iterations it took. ``priors=False``: the step's response to ``residual``
     alone (the priors' pull towards their centres left out, their weight kept)."""
@@ -288,23 +291,44 @@ def _gauss_newton_step(A, At, gram, weight, residual, predicted, a, s, opt: Scen
     lam = opt.smoothness * float(np.median(weight[weight > 0]))
     prior = 1.0 / opt.gain_prior**2
     wr = weight * residual
-    grad_s = At @ (at * wr) - (lam * (gram @ s) if priors else 0.0)
+    grad_s = A.back(at * wr) - (lam * (gram @ s) if priors else 0.0)
     grad_a = (predicted * wr).reshape(repeat, n).sum(axis=0) - (prior * (a - 1.0) if priors else 0.0)
     h_aa = (weight * predicted**2).reshape(repeat, n).sum(axis=0) + prior
     coupling = weight * at * predicted  # rows of H_sa = A^T diag(w a P), per reading
     data_ss = weight * at**2
 
     def schur(v):
-        u = A @ v
+        u = A.forward(v)
         back = (coupling * u).reshape(repeat, n).sum(axis=0) / h_aa
-        return At @ (data_ss * u - coupling * np.tile(back, repeat)) + lam * (gram @ v)
+        return A.back(data_ss * u - coupling * np.tile(back, repeat)) + lam * (gram @ v)
 
-    rhs = grad_s - At @ (coupling * np.tile(grad_a / h_aa, repeat))
-    diagonal = At.multiply(At) @ data_ss + lam * gram.diagonal()
+    rhs = grad_s - A.back(coupling * np.tile(grad_a / h_aa, repeat))
+    diagonal = A.back_squared(data_ss) + lam * gram.diagonal()
     ds, its = _pcg(schur, rhs, np.maximum(diagonal, 1e-12 * max(diagonal.max(), 1e-300)), opt.cg_iterations,
                    opt.cg_rtol)
-    da = (grad_a - (coupling * (A @ ds)).reshape(repeat, n).sum(axis=0)) / h_aa
+    da = (grad_a - (coupling * A.forward(ds)).reshape(repeat, n).sum(axis=0)) / h_aa
     return ds, da, its
+
+
+class _Sampling:
+    """The observation matrix in float32 (the products are most of the solve's time, and bound by
+    memory traffic), its transpose and its squared transpose; vectors in and out float64."""
+
+    def __init__(self, matrix):
+        self.matrix = matrix.astype(np.float32, copy=False)
+        self.transpose = self.matrix.T.tocsr()
+        self.squared = self.transpose.copy()
+        self.squared.data **= 2
+
+    def forward(self, v):
+        return (self.matrix @ v.astype(np.float32)).astype(np.float64)
+
+    def back(self, r):
+        return (self.transpose @ r.astype(np.float32)).astype(np.float64)
+
+    def back_squared(self, r):
+        """``(A * A)^T r``: the diagonal of ``A^T diag(r) A``."""
+        return (self.squared @ r.astype(np.float32)).astype(np.float64)
 
 
 def _pcg(operator, rhs, diagonal, iterations: int, rtol: float):
