@@ -159,9 +159,9 @@ class MotionConfig:
 @dataclass(frozen=True)
 class SolverConfig:
     method: str = _key(
-        "accurate", choice("accurate", "paper", "scene"),
-        "accurate (pairwise comparisons), paper (the published form) or scene (one forward model of the burst with a "
-        "super-resolved latent scene)",
+        "auto", choice("auto", "accurate", "paper", "scene"),
+        "auto (scene where the burst is aliased, else accurate), accurate (pairwise comparisons), paper (the "
+        "published form) or scene (one forward model of the burst with a super-resolved latent scene)",
     )
     block_size: int = _key(5, positive_int, "side of the square blocks of frame 0, in pixels")
     lam: float = _key(0.0, non_negative_float, "ridge weight of lam * ||k - 1||^2")

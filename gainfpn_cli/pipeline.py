@@ -152,6 +152,7 @@ def _estimate(burst: LoadedBurst, cfg: Config, solver: solving.Solver, progress:
     with defective.repaired(frames, codes, burst.cfa, burst.channels):
         t0 = time.perf_counter()
         n_fit = len(fit_frames)
+        solver, choice = solving.choose(burst, frames, excluded, exposures, slice(0, n_fit), in_frame, solver)
         k, confidence, plane_reports, calibrations = solving.solve_planes(
             burst, frames, excluded, exposures, slice(0, n_fit), in_frame, solver, progress,
             split=cfg.motion.refine_rounds == 0)
@@ -199,6 +200,7 @@ def _estimate(burst: LoadedBurst, cfg: Config, solver: solving.Solver, progress:
         dark=burst.dark,
         white_level_dn=burst.white,
         reference=burst.paths[burst.reference].name,
+        solver=choice,
         motion=Motion(
             model=motion.model,
             reason=motion.reason,

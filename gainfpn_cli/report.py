@@ -166,6 +166,24 @@ class Exposure:
 
 
 @dataclass(frozen=True)
+class SolverChoice:
+    """The solver method used and why (``solver.method: auto`` chooses it from the burst's measured
+    aliasing: the pairwise prediction error's excess over the noise, ``aliasing``; None where not
+    measured)."""
+
+    method: str
+    reason: str = ""
+    aliasing: float | None = None
+
+    def to_json(self) -> dict:
+        return vars(self).copy()
+
+    @classmethod
+    def from_json(cls, data: dict) -> "SolverChoice":
+        return cls(**data)
+
+
+@dataclass(frozen=True)
 class PlaneReport:
     """How one plane (a CFA colour, or Y) was solved: the solver (``paper`` / ``accurate``), the
     grid it was solved on (a CFA's two greens together for the accurate solver), the solver's
@@ -224,6 +242,7 @@ class Report:
     """What an estimate found and how: the report of :func:`pipeline.estimate`."""
 
     motion: Motion
+    solver: SolverChoice | None = None  # None in reports written before the choice was reported
     prnu_percent: Prnu = field(default_factory=Prnu)
     predicted_residual_percent: float | None = None  # median predicted sigma_k (the accurate solver's)
     holdout: Holdout | None = None
@@ -278,6 +297,7 @@ class Report:
             "dark": None if self.dark is None else self.dark.to_json(),
             "white_level_dn": self.white_level_dn,
             "reference": self.reference,
+            "solver": None if self.solver is None else self.solver.to_json(),
             "motion": self.motion.to_json(),
             "exposure": self.exposure.to_json(),
             "defects": None if self.defects is None else self.defects.to_json(),
@@ -294,6 +314,7 @@ class Report:
         holdout = data["holdout"]
         return cls(
             motion=Motion.from_json(data["motion"]),
+            solver=None if data.get("solver") is None else SolverChoice.from_json(data["solver"]),
             prnu_percent=Prnu.from_json(data["prnu_percent"]),
             predicted_residual_percent=data["predicted_residual_percent"],
             holdout=None if holdout is None else Holdout.from_json(holdout),

@@ -14,8 +14,9 @@ import numpy as np
 from .burst import LoadedBurst
 from .geometry.planes import plane_views, solve_grids
 from .geometry.resample import positions as warp_positions
-from .report import Holdout, PlaneCheck, PlaneReport
+from .report import Holdout, PlaneCheck, PlaneReport, SolverChoice
 from .solve.accurate import AccurateOptions, solve_accurate, solve_accurate_many
+from .solve.aliasing import aliasing
 from .solve.blocks import solve_paper
 from .solve.fpnmodel import Halves, select_model
 from .solve.holdout import holdout_checks, pooled
@@ -64,6 +65,58 @@ class Solver:
 
 #: The solvers whose confidence is ``1 / (1 + (sigma_k / 1 %)^2)`` with a predicted sigma_k.
 CALIBRATED_METHODS = ("accurate", "scene")
+
+
+#: ``solver.method: auto`` models the latent scene (the scene method) where the pairwise prediction
+#: error exceeds the noise's by this fraction or more (:mod:`solve.aliasing`). Measured on 640x480x8
+#: paper bursts (docs/method.md section 8c): dead leaves 0.24 (scene 1.51x the bound, accurate
+#: 2.15x); procedural 0.013, camera -0.05, brick -0.05, where the accurate method is as good or better.
+ALIASED = 0.1
+#: ... and only with this many frames fitted or more: a latent scene at twice the pixel pitch takes
+#: 4 readings' worth of information per pixel, ``sqrt(T / (T - 4))`` in sigma_k (1.53 at 7 frames:
+#: an 8-frame burst with one held out, where the figures above were measured).
+SCENE_MIN_FRAMES = 7
+
+
+def choose(burst, frames, excluded, exposures, used: slice, in_frame,
+           solver: "Solver") -> tuple["Solver", SolverChoice]:
+    """The solver ``solver.method: auto`` resolves to for this burst, and why; any other method as it is."""
+    if solver.method != "auto":
+        return solver, SolverChoice(solver.method, "set by solver.method")
+    fitted = len(range(len(frames))[used])
+    if burst.cfa is not None:
+        reason = ("a CFA mosaic: each colour's latent scene would be sampled at the photosite pitch, which a colour "
+                  "plane itself sees only every other photosite (still aliased), so the pairwise form is used")
+        return dataclasses.replace(solver, method="accurate"), SolverChoice("accurate", reason)
+    if fitted < SCENE_MIN_FRAMES:
+        reason = (f"{fitted} frames fitted: too few for a latent scene at twice the pixel pitch (at least "
+                  f"{SCENE_MIN_FRAMES})")
+        return dataclasses.replace(solver, method="accurate"), SolverChoice("accurate", reason)
+    measured = None  # the most aliased plane's
+    regions = central(burst, frames, solver)
+    motion = in_frame.select(range(len(frames))[used])
+    for grid in grids_of(burst, frames, "accurate"):
+        plane = grid.gather(frames[used])
+        good = plane > 0
+        if burst.saturation is not None:
+            good &= plane < burst.saturation
+        if excluded is not None:
+            good &= ~grid.gather(np.broadcast_to(excluded[used, ..., None], frames[used].shape))
+        excess = aliasing(plane, motion.conjugate(grid.S), exposures=exposures[used], good=good,
+                          region=regions[grid.name]).excess
+        if excess is not None:
+            measured = excess if measured is None else max(measured, excess)
+    if measured is None:
+        reason = ("the aliasing could not be measured (too few pixels seen by enough frames), so the pairwise form "
+                  "is used")
+        return dataclasses.replace(solver, method="accurate"), SolverChoice("accurate", reason)
+    if measured >= ALIASED:
+        reason = (f"aliased: predicting one frame from another by interpolation leaves {100 * (1 + measured):.0f} % "
+                  f"of the error that noise and gain FPN explain (the scene model from {100 * (1 + ALIASED):.0f} %)")
+        return dataclasses.replace(solver, method="scene"), SolverChoice("scene", reason, measured)
+    reason = (f"not aliased: predicting one frame from another by interpolation leaves {100 * (1 + measured):.0f} % "
+              f"of the error that noise and gain FPN explain (the scene model from {100 * (1 + ALIASED):.0f} %)")
+    return dataclasses.replace(solver, method="accurate"), SolverChoice("accurate", reason, measured)
 
 
 def grids_of(burst: LoadedBurst, frames: np.ndarray, method: str) -> list:

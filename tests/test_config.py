@@ -59,7 +59,7 @@ def test_error_names_file_key_and_value(tmp_path):
         ("solver: {lam: -1}", r"solver\.lam: must be a finite non-negative number, got -1"),
         ("solver: {lam: .nan}", r"solver\.lam: must be a finite non-negative number"),
         ("solver: {lam: abc}", r"solver\.lam: must be a non-negative number, got 'abc'"),
-        ("solver: {method: fancy}", r"solver\.method: must be one of accurate, paper, scene, got 'fancy'"),
+        ("solver: {method: fancy}", r"solver\.method: must be one of auto, accurate, paper, scene, got 'fancy'"),
         ("output: {compression: dwaa}", r"output\.compression: must be one of none, zip"),
         ("output: {corrected: yes please}", r"output\.corrected: must be true or false"),
         ("solver: 3", r"solver: must be a mapping of keys, got int"),

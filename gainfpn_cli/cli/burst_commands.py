@@ -32,7 +32,7 @@ from . import (
               help="Output directory.")
 @config_option
 @preset_option
-@click.option("--method", type=click.Choice(["accurate", "paper", "scene"]),
+@click.option("--method", type=click.Choice(["auto", "accurate", "paper", "scene"]),
               help=f"Solver method. {_cfg('solver.method')}")
 @click.option("--workers", type=click.IntRange(1), help=f"Solver processes. {_cfg('solver.workers')}")
 @click.option("--block-size", type=click.IntRange(1), help=f"Paper method: block side, px. {_cfg('solver.block_size')}")

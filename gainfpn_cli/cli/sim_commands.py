@@ -44,6 +44,8 @@ from . import _parse_scene, _parse_size, json_option, main, overwrite_option, pr
               help="Electrons at scene value 1, as a fraction of full well.")
 @click.option("--exposure-jitter", type=click.FloatRange(0, 1), default=0.0, show_default=True,
               help="Sigma of the log of each frame's exposure relative to the first (auto-exposure, flicker).")
+@click.option("--blur", type=click.FloatRange(0), default=0.0, show_default=True,
+              help="Sigma of a Gaussian lens blur, px (0: none; the pixel's own box integration is always there).")
 @click.option("--defects", type=click.FloatRange(0, 0.5), default=0.0, show_default=True,
               help="Fraction of defective photosites: 70 % hot (a dark-current offset of 5-50x their noise), 15 % dead "
                    "(no response), 15 % stuck (one reading in every frame); truth/defects.exr marks them.")
@@ -51,7 +53,7 @@ from . import _parse_scene, _parse_size, json_option, main, overwrite_option, pr
 @quiet_option
 def simulate(out_dir, preset, n_frames, size, fmt, seed, scene, fpn_pixel, fpn_column, fpn_row, read_noise, bits,
              black, cfa, shake, rotation, drift, wobble, distortion, moving_object, parallax, exposure, exposure_jitter,
-             defects, overwrite, quiet):
+             blur, defects, overwrite, quiet):
     """Write a synthetic burst with known gains and motion into OUT_DIR."""
     import dataclasses
 
@@ -77,10 +79,12 @@ def simulate(out_dir, preset, n_frames, size, fmt, seed, scene, fpn_pixel, fpn_c
                   "sensor": dataclasses.asdict(sensor), "shake": dataclasses.asdict(motion)}
     if defects:
         parameters["defects"] = defects
+    if blur:
+        parameters["blur"] = blur
     paths, plan = simulate_to(out_dir, fmt=fmt, overwrite=overwrite, scene=scene, parameters=parameters, shape=size,
                         n_frames=n_frames, sensor=sensor, shake=motion, exposure=exposure, seed=seed,
                         moving_object=moving_object, parallax=parallax, exposure_jitter=exposure_jitter,
-                        defects=defects)
+                        defects=defects, optics_sigma_px=blur)
     untouched(plan)
     say(quiet, f"wrote {len(paths)} {fmt.upper()} frames ({size[1]}x{size[0]}) and truth/ to {out_dir}")
 
