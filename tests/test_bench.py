@@ -77,3 +77,15 @@ def test_groups_select_points_and_unknown_groups_are_named():
         bench.plan(True, ("nope",))
     result = CliRunner().invoke(main, ["bench", "--quick", "--group", "nope", "-o", "unused"])
     assert result.exit_code == 2 and "unknown bench group" in result.output
+
+
+def test_the_scene_model_group_compares_both_solvers_on_the_same_bursts():
+    points = bench.plan(False, ("scene_model",))
+    by_burst = {}
+    for p in points:
+        by_burst.setdefault(p.burst.key, set()).add(p.overrides["solver.method"])
+    assert all(methods == {"accurate", "scene"} for methods in by_burst.values())
+    keys = set(by_burst)
+    assert len(keys) == 11  # 8 / 16 / 32 frames, raw12 x 2 scenes x 2 counts, noise-free x blur x 2 counts
+    assert sum("-clean" in k for k in keys) == 4 and sum("-b1" in k for k in keys) == 2
+    assert sum(k.endswith("-raw12") for k in keys) == 4

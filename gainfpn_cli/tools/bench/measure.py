@@ -69,8 +69,11 @@ def _simulate(spec: BurstSpec, seed: int):
     from ...sim.simulate import simulate_burst
 
     shake = Shake(wobble_px=spec.wobble_px, distortion_px=spec.distortion_px, **MOTIONS[spec.motion])
+    sensor = _sensor(spec)
+    if not spec.noise:
+        sensor = dataclasses.replace(sensor, shot_noise=False, read_noise_e=0.0, adc_bits=16)
     return simulate_burst(shape=spec.shape, n_frames=spec.n_frames, seed=seed, scene=spec.scene,
-                          sensor=_sensor(spec), supersample=spec.supersample, shake=shake,
+                          sensor=sensor, supersample=spec.supersample, shake=shake, optics_sigma_px=spec.blur_px,
                           moving_object=spec.moving_object or (0.1 if spec.parallax else 0.0),
                           parallax=spec.parallax, exposure_jitter=spec.exposure_jitter, exposure=spec.exposure)
 
@@ -185,6 +188,7 @@ def _pipeline(point: Point, folder: Path, out: Path) -> dict:
     timings = {**report.timings, "total_s": total}
     calibrated = all(plane.confidence_calibrated for plane in report.planes.values())
     return {**scores, "timings": timings, "motion_model": report.motion.model, "holdout_passed": passed,
+            "solver": None if report.solver is None else report.solver.method,
             "confidence_calibrated": calibrated}
 
 

@@ -42,6 +42,8 @@ class BurstSpec:
     motion: str = "shake"  # a key of MOTIONS
     sensor: str = SENSOR  # a simulate.PRESETS name; one with a CFA is written as DNG
     exposure: float = EXPOSURE  # a scene value of 1 gives this fraction of the full well
+    blur_px: float = 0.0  # sigma of a Gaussian lens blur
+    noise: bool = True  # False: no shot or read noise and a 16-bit ADC (the model error alone)
 
     @property
     def key(self) -> str:
@@ -53,8 +55,10 @@ class BurstSpec:
         mover = f"-o{self.moving_object:g}" if self.moving_object else ""
         motion = "" if self.motion == "shake" else f"-{self.motion}"
         light = "" if self.exposure == EXPOSURE else f"-x{self.exposure:g}"
+        optics = f"-b{self.blur_px:g}" if self.blur_px else ""
+        clean = "" if self.noise else "-clean"
         return (f"{w}x{h}-f{self.n_frames}-s{self.seed}-{self.scene}-c{self.fpn_column:g}-ss{self.supersample}"
-                f"{waves}{near}{jitter}{mover}{motion}{light}{sensor}")
+                f"{waves}{near}{jitter}{mover}{motion}{light}{sensor}{optics}{clean}")
 
     @property
     def megapixels(self) -> float:
@@ -107,10 +111,11 @@ def _all_points(quick: bool) -> list[Point]:
         return points
     points += [Point("block_size", f"paper, {b}x{b}", base, preset="paper", overrides={"solver.block_size": b})
                for b in (1, 3, 9, 17, 33)]
-    points += [Point("block_size", "global (accurate, one tile)", base, overrides={"solver.tile": 4096})]
+    points += [Point("block_size", "global (accurate, one tile)", base,
+                     overrides={"solver.method": "accurate", "solver.tile": 4096})]
     points += [Point("lambda", f"paper, lam {lam:g}", base, preset="paper", overrides={"solver.lam": lam})
                for lam in (1e-4, 1e-2, 1.0, 10.0)]
-    points += [Point("kernel", kernel, base, overrides={"solver.interpolation": kernel})
+    points += [Point("kernel", kernel, base, overrides={"solver.method": "accurate", "solver.interpolation": kernel})
                for kernel in ("bilinear", "cubic", "lanczos4")]
     points += [Point("frames", "3 frames, no hold-out", dataclasses.replace(base, n_frames=3),
                      overrides={"output.holdout": False})]  # with the hold-out, 3 frames are refused
@@ -147,6 +152,7 @@ def _all_points(quick: bool) -> list[Point]:
     for n in (4, 16, 32):
         points.append(Point("scaling_frames", f"balanced, {n} frames, 2 MP",
                             BurstSpec(shape=(1200, 1600), n_frames=n, supersample=2), preset="balanced"))
+    points += _scene_model_points(base)
     # the memory a 12 MP x 16 frame burst needs (4 GiB asked)
     points.append(Point("scaling_frames", "balanced, 16 frames, 12 MP",
                         BurstSpec(shape=(3000, 4000), n_frames=16, supersample=2), preset="balanced"))
@@ -162,3 +168,16 @@ def _confidence_points(scenes=("dead-leaves", "procedural"), sensors=("paper", "
     return [Point("confidence", f"{scene}, {sensor}, {'bright' if exposure == EXPOSURE else 'dark'}, {n} frames",
                   BurstSpec(shape=(240, 320), n_frames=n, seed=7, scene=scene, sensor=sensor, exposure=exposure))
             for scene in scenes for sensor in sensors for exposure in exposures for n in frames]
+
+
+def _scene_model_points(base: BurstSpec) -> list[Point]:
+    """The scene solver against the accurate one: dead leaves at 8, 16 and 32 frames, 12-bit RGGB DNG
+    bursts of both scenes at 8 and 16, and noise-free bursts (the model error alone) with and without a
+    1 px lens blur."""
+    bursts = [(f"{n} frames", dataclasses.replace(base, n_frames=n)) for n in (8, 16, 32)]
+    bursts += [(f"raw12 {scene}, {n} frames", dataclasses.replace(base, scene=scene, n_frames=n, sensor="raw12"))
+               for scene in ("dead-leaves", "procedural") for n in (8, 16)]
+    bursts += [(f"noise-free{', 1 px blur' if blur else ''}, {n} frames",
+                dataclasses.replace(base, n_frames=n, blur_px=blur, noise=False)) for blur in (0.0, 1.0) for n in (8, 16)]
+    return [Point("scene_model", f"{label}, {method}", burst, overrides={"solver.method": method})
+            for label, burst in bursts for method in ("accurate", "scene")]
