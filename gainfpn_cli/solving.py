@@ -83,40 +83,47 @@ def choose(burst, frames, excluded, exposures, used: slice, in_frame,
     """The solver ``solver.method: auto`` resolves to for this burst, and why; any other method as it is."""
     if solver.method != "auto":
         return solver, SolverChoice(solver.method, "set by solver.method")
+    choice = _auto(burst, frames, excluded, exposures, used, in_frame, solver)
+    return dataclasses.replace(solver, method=choice.method), choice
+
+
+def _auto(burst, frames, excluded, exposures, used: slice, in_frame, solver: "Solver") -> SolverChoice:
     fitted = len(range(len(frames))[used])
     if burst.cfa is not None:
-        reason = ("a CFA mosaic: each colour's latent scene would be sampled at the photosite pitch, which a colour "
-                  "plane itself sees only every other photosite (still aliased), so the pairwise form is used")
-        return dataclasses.replace(solver, method="accurate"), SolverChoice("accurate", reason)
+        return SolverChoice("accurate", "a CFA mosaic: each colour's latent scene would be sampled at the photosite "
+                            "pitch, which a colour plane itself sees only every other photosite (still aliased), so "
+                            "the pairwise form is used")
     if fitted < SCENE_MIN_FRAMES:
-        reason = (f"{fitted} frames fitted: too few for a latent scene at twice the pixel pitch (at least "
-                  f"{SCENE_MIN_FRAMES})")
-        return dataclasses.replace(solver, method="accurate"), SolverChoice("accurate", reason)
-    measured = None  # the most aliased plane's
+        return SolverChoice("accurate", f"{fitted} frames fitted: too few for a latent scene at twice the pixel "
+                                        f"pitch (at least {SCENE_MIN_FRAMES})")
+    measured = _most_aliased(burst, frames, excluded, exposures, used, in_frame, solver)
+    if measured is None:
+        return SolverChoice("accurate", "the aliasing could not be measured (too few pixels seen by enough frames), "
+                                        "so the pairwise form is used")
+    method, verdict = ("scene", "aliased") if measured >= ALIASED else ("accurate", "not aliased")
+    return SolverChoice(method, f"{verdict}: predicting one frame from another by interpolation leaves "
+                                f"{100 * (1 + measured):.0f} % of the error that noise and gain FPN explain (the scene "
+                                f"model from {100 * (1 + ALIASED):.0f} %)", measured)
+
+
+def _most_aliased(burst, frames, excluded, exposures, used: slice, in_frame, solver: "Solver") -> float | None:
+    """The largest aliasing excess (:func:`solve.aliasing.aliasing`) over the planes' central regions, of
+    the frames ``used``; None if no plane's could be measured."""
+    fit = frames[used]  # a slice: a view
+    left_out = None if excluded is None else np.broadcast_to(excluded[used, ..., None], fit.shape)  # every channel
     regions = central(burst, frames, solver)
     motion = in_frame.select(range(len(frames))[used])
+    measured = []
     for grid in grids_of(burst, frames, "accurate"):
-        plane = grid.gather(frames[used])
-        good = plane > 0
-        if burst.saturation is not None:
-            good &= plane < burst.saturation
-        if excluded is not None:
-            good &= ~grid.gather(np.broadcast_to(excluded[used, ..., None], frames[used].shape))
+        plane = grid.gather(fit)
+        good = (plane > 0) & (plane < (np.inf if burst.saturation is None else burst.saturation))
+        if left_out is not None:
+            good &= ~grid.gather(left_out)
         excess = aliasing(plane, motion.conjugate(grid.S), exposures=exposures[used], good=good,
                           region=regions[grid.name]).excess
         if excess is not None:
-            measured = excess if measured is None else max(measured, excess)
-    if measured is None:
-        reason = ("the aliasing could not be measured (too few pixels seen by enough frames), so the pairwise form "
-                  "is used")
-        return dataclasses.replace(solver, method="accurate"), SolverChoice("accurate", reason)
-    if measured >= ALIASED:
-        reason = (f"aliased: predicting one frame from another by interpolation leaves {100 * (1 + measured):.0f} % "
-                  f"of the error that noise and gain FPN explain (the scene model from {100 * (1 + ALIASED):.0f} %)")
-        return dataclasses.replace(solver, method="scene"), SolverChoice("scene", reason, measured)
-    reason = (f"not aliased: predicting one frame from another by interpolation leaves {100 * (1 + measured):.0f} % "
-              f"of the error that noise and gain FPN explain (the scene model from {100 * (1 + ALIASED):.0f} %)")
-    return dataclasses.replace(solver, method="accurate"), SolverChoice("accurate", reason, measured)
+            measured.append(excess)
+    return max(measured, default=None)
 
 
 def grids_of(burst: LoadedBurst, frames: np.ndarray, method: str) -> list:

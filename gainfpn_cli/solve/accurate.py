@@ -41,7 +41,7 @@ from ..geometry.warps import FieldWarp, GlobalWarp
 from ..metrics import MAD_TO_SIGMA
 from .phase import phase_weighted
 from .result import AccurateStats, GainResult, confidence_from_sigma
-from .tiling import blend, checked_problem, solve_tiles, windows
+from .tiling import blend, checked_problem, crops, solve_tiles
 
 
 @dataclass(frozen=True)
@@ -200,12 +200,8 @@ def _assemble(tiles, results, shape, options: AccurateOptions) -> GainResult:
 def _tiles(frames, excluded, motion, saturation, options, exposures=None) -> list[_Tile]:
     anchors = range(frames.shape[0]) if options.anchors == "all" else [0]
     pairs = tuple((s, t) for s in anchors for t in partner_frames(s, frames.shape[0], options.partners))
-    tiles = []
-    for y0, x0, y1, x1 in windows(frames.shape[1:], options.tile, options.halo):
-        crop = (slice(None), slice(y0, y1), slice(x0, x1))
-        tiles.append(_Tile(y0, x0, frames[crop], None if excluded is None else excluded[crop], pairs, motion,
-                           saturation, options, exposures))
-    return tiles
+    return [_Tile(y0, x0, crop, left_out, pairs, motion, saturation, options, exposures)
+            for y0, x0, crop, left_out in crops(frames, excluded, options.tile, options.halo)]
 
 
 def partner_frames(s: int, n: int, count: int) -> list[int]:

@@ -34,7 +34,7 @@ import numpy as np
 from ..geometry.resample import low_pass, positions
 from .accurate import power_of_two_scale
 from .result import GainResult, SceneStats, confidence_from_sigma
-from .tiling import blend, checked_problem, solve_tiles, windows
+from .tiling import blend, checked_problem, crops, solve_tiles
 
 
 @dataclass(frozen=True)
@@ -134,12 +134,8 @@ def _prepare(frames, motion, options: SceneOptions, saturation, excluded, exposu
         raise ValueError(f"scale must be >= 1 and aperture in (0, 1], got {options.scale}, {options.aperture}")
     frames, motion, exposures = checked_problem(frames, motion, excluded, exposures)
     sat = np.inf if saturation is None else float(saturation)
-    tiles = []
-    for y0, x0, y1, x1 in windows(frames.shape[1:], options.tile, options.halo):
-        crop = (slice(None), slice(y0, y1), slice(x0, x1))
-        tiles.append(_Tile(y0, x0, frames[crop], None if excluded is None else excluded[crop], motion, sat,
-                           options, exposures))
-    return tiles
+    return [_Tile(y0, x0, crop, left_out, motion, sat, options, exposures)
+            for y0, x0, crop, left_out in crops(frames, excluded, options.tile, options.halo)]
 
 
 def box_spline_weights(u: np.ndarray, width: float) -> tuple[np.ndarray, np.ndarray]:

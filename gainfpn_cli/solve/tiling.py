@@ -24,6 +24,14 @@ def windows(shape: tuple[int, int], core: int, halo: int) -> list[tuple[int, int
             for cy in range(0, h, core) for cx in range(0, w, core)]
 
 
+def crops(frames: np.ndarray, excluded: np.ndarray | None, core: int, halo: int):
+    """``(y0, x0, frames, excluded)`` of every tile of :func:`windows`: the stacks' crops (views)
+    over the tile and its halo (``excluded`` None stays None)."""
+    for y0, x0, y1, x1 in windows(frames.shape[1:], core, halo):
+        crop = (slice(None), slice(y0, y1), slice(x0, x1))
+        yield y0, x0, frames[crop], None if excluded is None else excluded[crop]
+
+
 def ramp(shape: tuple[int, int], origin: tuple[int, int], full: tuple[int, int], halo: int) -> np.ndarray:
     """Blend weight of a tile of ``shape`` at ``origin``: 1 in its core, falling linearly to ~0
     across its halo (not at the plane's edges)."""
