@@ -19,7 +19,7 @@ Low-passed, the same map reads 1.05 (rejected), while the true gains still read 
 A full-resolution plane keeps its raw residuals: there the low-pass costs the check its power
 where k's error or the residual is not white (120x160 8-bit bursts of 6 frames: the paper's
 block solver with 3 % exposure steps taken as equal, 0.53 +- 0.07 -> 0.99 +- 0.08; an unmasked
-moving object, 0.89 +- 0.04 -> 1.00 +- 0.01: maps that left 1.5 % of a 5 % gain FPN and cut the
+moving object, 0.89 +- 0.04 -> 1.00 +- 0.01: maps that left 2.8 % of a 5 % gain FPN and cut the
 MSE off the object 5.5x, rejected).
 """
 
