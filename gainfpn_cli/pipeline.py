@@ -22,8 +22,8 @@ from .motion.estimate import estimate_motion
 from .motion.exposure import relative_exposures, rough_exposures, significant
 from .motion.masks import moving_masks
 from .report import Defects, Exposure, FrameMotion, Layer, Motion, Prnu, Report
-from .solve.accurate import power_of_two_scale
 from .solve.result import sigma_from_confidence
+from .solve.tiling import power_of_two_scale
 from .solving import CALIBRATED_METHODS
 
 #: Fewest frames a burst needs; the hold-out check needs one more, since a

@@ -37,11 +37,10 @@ import numpy as np
 
 from ..errors import EstimationError
 from ..geometry.resample import KERNELS, bounded, low_pass, sample, valid_samples
-from ..geometry.warps import FieldWarp, GlobalWarp
 from ..metrics import MAD_TO_SIGMA
 from .phase import phase_weighted
 from .result import AccurateStats, GainResult, confidence_from_sigma
-from .tiling import blend, checked_problem, crops, solve_tiles
+from .tiling import Tile, blend, checked_problem, solve_tiles, tiles_of
 
 
 @dataclass(frozen=True)
@@ -108,19 +107,6 @@ class AccurateOptions:
     gain_range: tuple[float, float] = (0.5, 2.0)
 
 
-@dataclass(frozen=True)
-class _Tile:
-    y0: int
-    x0: int
-    frames: np.ndarray  # (F, h, w) crop of every frame over the tile and its halo
-    excluded: np.ndarray | None  # (F, h, w) bool crop: pixels left out (moving), or None
-    pairs: tuple  # ((s, t), ...) compared
-    motion: GlobalWarp | FieldWarp  # maps computed in the worker: a field model's cost a moment each
-    saturation: float
-    options: AccurateOptions
-    exposures: tuple | None = None  # each frame's exposure relative to the reference, or None (all alike)
-
-
 def solve_accurate(
     frames: np.ndarray,
     motion,
@@ -185,8 +171,9 @@ def _prepare(frames, motion, options: AccurateOptions, saturation, excluded, exp
             f"frames of {w}x{h} px are too small for the {options.kernel} kernel, which needs more than "
             f"{2 * radius} px on each side (use solver.interpolation: bilinear, or solver.method: paper)"
         )
-    sat = np.inf if saturation is None else float(saturation)
-    return _tiles(frames, excluded, motion, sat, options, exposures)
+    anchors = range(frames.shape[0]) if options.anchors == "all" else [0]
+    pairs = tuple((s, t) for s in anchors for t in partner_frames(s, frames.shape[0], options.partners))
+    return tiles_of(frames, excluded, motion, saturation, options, exposures, pairs)
 
 
 def _assemble(tiles, results, shape, options: AccurateOptions) -> GainResult:
@@ -195,13 +182,6 @@ def _assemble(tiles, results, shape, options: AccurateOptions) -> GainResult:
     stats = AccurateStats(tiles=len(tiles), gmres_iterations=b.iterations, unestimated_pixels=b.unestimated_pixels,
                           out_of_range_pixels=b.out_of_range_pixels, median_confidence=b.median_confidence)
     return GainResult(b.k, b.confidence, stats)
-
-
-def _tiles(frames, excluded, motion, saturation, options, exposures=None) -> list[_Tile]:
-    anchors = range(frames.shape[0]) if options.anchors == "all" else [0]
-    pairs = tuple((s, t) for s in anchors for t in partner_frames(s, frames.shape[0], options.partners))
-    return [_Tile(y0, x0, crop, left_out, pairs, motion, saturation, options, exposures)
-            for y0, x0, crop, left_out in crops(frames, excluded, options.tile, options.halo)]
 
 
 def partner_frames(s: int, n: int, count: int) -> list[int]:
@@ -214,19 +194,10 @@ def partner_frames(s: int, n: int, count: int) -> list[int]:
     return order if count <= 0 else order[:count]
 
 
-def _solve_tile(tile: _Tile) -> tuple[np.ndarray, np.ndarray, int]:
+def _solve_tile(tile: Tile) -> tuple[np.ndarray, np.ndarray, int]:
     """k, confidence and GMRES iterations for one tile (its halo included)."""
     opt = tile.options
-    frames = tile.frames.astype(np.float64)
-    # k does not depend on the frames' scale: a power of two (exact) brings them to about 1,
-    # far from float32's limits in the products with k
-    unit = power_of_two_scale(frames)
-    good = (frames > 0) & (frames < tile.saturation)
-    if tile.excluded is not None:
-        good &= ~tile.excluded
-    frames /= unit
-    if tile.exposures is not None:  # after the clipping test, which is on the counts as read
-        frames /= np.asarray(tile.exposures)[:, None, None]
+    frames, good = tile.readings()
     shape = frames.shape[1:]
     region = (tile.y0, tile.x0) + shape
     # (s, t, M_st in tile pixels); a map is used every iteration: bounded once
@@ -254,14 +225,6 @@ def _solve_tile(tile: _Tile) -> tuple[np.ndarray, np.ndarray, int]:
     k[~est] = 1.0
     confidence = _confidence(residuals, weights, valid, _anchor_information(frames, tile.pairs, weights), est)
     return k.astype(np.float32), confidence.astype(np.float32), iterations
-
-
-def power_of_two_scale(frames: np.ndarray) -> float:
-    """The power of two nearest the median of the positive samples (1 if none): dividing by
-    it is exact, so no sample crosses the saturation level or black."""
-    positive = frames[frames > 0]
-    median = float(np.median(positive)) if positive.size else 1.0
-    return float(2.0 ** np.round(np.log2(median))) if np.isfinite(median) and median > 0 else 1.0
 
 
 def _anchor_information(frames, pairs, weights) -> np.ndarray:

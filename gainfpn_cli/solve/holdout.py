@@ -32,7 +32,7 @@ import numpy as np
 from scipy.ndimage import gaussian_filter
 
 from ..geometry.resample import sample, valid_samples
-from .accurate import power_of_two_scale
+from .tiling import power_of_two_scale
 
 #: Side (px) of the square blocks the residuals are summed over for the jackknife: larger than
 #: the interpolation kernel and the solver's 5x5 windows, so blocks are nearly independent.

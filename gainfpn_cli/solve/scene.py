@@ -32,9 +32,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..geometry.resample import low_pass, positions
-from .accurate import power_of_two_scale
 from .result import GainResult, SceneStats, confidence_from_sigma
-from .tiling import blend, checked_problem, crops, solve_tiles
+from .tiling import Tile, blend, checked_problem, solve_tiles, tiles_of
 
 
 @dataclass(frozen=True)
@@ -86,18 +85,6 @@ class SceneOptions:
     gain_range: tuple[float, float] = (0.5, 2.0)
 
 
-@dataclass(frozen=True)
-class _Tile:
-    y0: int
-    x0: int
-    frames: np.ndarray  # (F, h, w) crop of every frame over the tile and its halo
-    excluded: np.ndarray | None
-    motion: object
-    saturation: float
-    options: SceneOptions
-    exposures: tuple | None = None
-
-
 #: Median of a chi-square variable of one degree of freedom: a median of squared normal
 #: residuals over it is their variance.
 CHI2_MEDIAN = 0.4549364
@@ -129,13 +116,11 @@ def _assemble(tiles, results, shape) -> GainResult:
                                                     b.out_of_range_pixels, b.median_confidence))
 
 
-def _prepare(frames, motion, options: SceneOptions, saturation, excluded, exposures) -> list[_Tile]:
+def _prepare(frames, motion, options: SceneOptions, saturation, excluded, exposures) -> list[Tile]:
     if options.scale < 1 or not 0 < options.aperture <= 1:
         raise ValueError(f"scale must be >= 1 and aperture in (0, 1], got {options.scale}, {options.aperture}")
     frames, motion, exposures = checked_problem(frames, motion, excluded, exposures)
-    sat = np.inf if saturation is None else float(saturation)
-    return [_Tile(y0, x0, crop, left_out, motion, sat, options, exposures)
-            for y0, x0, crop, left_out in crops(frames, excluded, options.tile, options.halo)]
+    return tiles_of(frames, excluded, motion, saturation, options, exposures)
 
 
 def box_spline_weights(u: np.ndarray, width: float) -> tuple[np.ndarray, np.ndarray]:
@@ -211,18 +196,11 @@ def noise_variance(residuals: np.ndarray, predicted: np.ndarray, bins: int = 8) 
     return float(alpha), float(beta)
 
 
-def _solve_tile(tile: _Tile) -> tuple[np.ndarray, np.ndarray, int]:
+def _solve_tile(tile: Tile) -> tuple[np.ndarray, np.ndarray, int]:
     """k, confidence and conjugate-gradient iterations of one tile (its halo included)."""
     opt = tile.options
-    frames = tile.frames.astype(np.float64)
+    frames, good = tile.readings()
     n_frames, h, w = frames.shape
-    unit = power_of_two_scale(frames)  # exact: about 1 after it
-    good = (frames > 0) & (frames < tile.saturation)
-    if tile.excluded is not None:
-        good &= ~tile.excluded
-    frames /= unit
-    if tile.exposures is not None:
-        frames /= np.asarray(tile.exposures)[:, None, None]
     region = (tile.y0, tile.x0, h, w)
     fine = (opt.scale * h, opt.scale * w)
     points = [positions(tile.motion.pair(t, 0, region), (h, w)).reshape(-1, 2) for t in range(n_frames)]

@@ -24,12 +24,58 @@ def windows(shape: tuple[int, int], core: int, halo: int) -> list[tuple[int, int
             for cy in range(0, h, core) for cx in range(0, w, core)]
 
 
-def crops(frames: np.ndarray, excluded: np.ndarray | None, core: int, halo: int):
-    """``(y0, x0, frames, excluded)`` of every tile of :func:`windows`: the stacks' crops (views)
-    over the tile and its halo (``excluded`` None stays None)."""
-    for y0, x0, y1, x1 in windows(frames.shape[1:], core, halo):
+@dataclass(frozen=True)
+class Tile:
+    """One tile's problem, as a worker solves it: its origin in the plane, every frame's crop and
+    the crop of the pixels left out (None: none) over the tile and its halo, the motion, the level
+    at which the frames clip, the solver's options, each frame's exposure relative to the reference
+    (None: all alike) and, for the accurate solver, the frame pairs it compares."""
+
+    y0: int
+    x0: int
+    frames: np.ndarray  # (F, h, w)
+    excluded: np.ndarray | None  # (F, h, w) bool
+    motion: object  # maps computed in the worker: a field model's cost a moment each
+    saturation: float
+    options: object
+    exposures: tuple | None = None
+    pairs: tuple = ()  # ((s, t), ...)
+
+    def readings(self) -> tuple[np.ndarray, np.ndarray]:
+        """The frames in float64 divided by an exact power of two (to about 1: far from float32's
+        limits in the products with k; k does not depend on it) and by their exposures, and where
+        they are usable: above black, below the clipping level (both on the counts as read) and
+        not left out."""
+        frames = self.frames.astype(np.float64)
+        unit = power_of_two_scale(frames)
+        good = (frames > 0) & (frames < self.saturation)
+        if self.excluded is not None:
+            good &= ~self.excluded
+        frames /= unit
+        if self.exposures is not None:
+            frames /= np.asarray(self.exposures)[:, None, None]
+        return frames, good
+
+
+def tiles_of(frames: np.ndarray, excluded: np.ndarray | None, motion, saturation: float | None, options,
+          exposures=None, pairs: tuple = ()) -> list[Tile]:
+    """The :class:`Tile` of every window (:func:`windows`, ``options.tile`` and ``options.halo``), the
+    stacks' crops views; ``saturation`` None: nothing clips."""
+    saturation = np.inf if saturation is None else float(saturation)
+    out = []
+    for y0, x0, y1, x1 in windows(frames.shape[1:], options.tile, options.halo):
         crop = (slice(None), slice(y0, y1), slice(x0, x1))
-        yield y0, x0, frames[crop], None if excluded is None else excluded[crop]
+        out.append(Tile(y0, x0, frames[crop], None if excluded is None else excluded[crop], motion, saturation,
+                        options, exposures, pairs))
+    return out
+
+
+def power_of_two_scale(frames: np.ndarray) -> float:
+    """The power of two nearest the median of the positive samples (1 if none): dividing by
+    it is exact, so no sample crosses the saturation level or black."""
+    positive = frames[frames > 0]
+    median = float(np.median(positive)) if positive.size else 1.0
+    return float(2.0 ** np.round(np.log2(median))) if np.isfinite(median) and median > 0 else 1.0
 
 
 def ramp(shape: tuple[int, int], origin: tuple[int, int], full: tuple[int, int], halo: int) -> np.ndarray:
