@@ -63,12 +63,14 @@ class Prnu:
 class PlaneCheck:
     """The hold-out check of one grid (:mod:`solve.holdout`): residual ratio, its standard error,
     whether it is below 1 by enough standard errors for the plane's correction to be kept, and the
-    16 px blocks left out because the check's own fit disagreed there with the written map."""
+    16 px blocks left out because the check's own fit disagreed there with the written map, and the
+    side (px of the grid) of the central region checked."""
 
     residual_ratio: float
     standard_error: float
     passed: bool
     left_out_blocks: int = 0
+    region_px: int | None = None
 
 
 @dataclass(frozen=True)
