@@ -64,7 +64,7 @@ class PlaneCheck:
     """The hold-out check of one grid (:mod:`solve.holdout`): residual ratio, its standard error,
     whether it is below 1 by enough standard errors for the plane's correction to be kept, and the
     16 px blocks left out because the check's own fit disagreed there with the written map, and the
-    side (px of the grid) of the central region checked."""
+    side (px of the grid) of the central square checked (cut to the grid where it is smaller)."""
 
     residual_ratio: float
     standard_error: float
