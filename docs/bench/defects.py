@@ -48,37 +48,21 @@ def run(scene="dead-leaves", preset="paper", n=8, exposure=0.75, frac=0.005, see
     out["fp"] = f"{(total - fp[0]) / total * 1e4:.2f}e-4 {fp[1:]}"
     print(f"{scene:12s} {preset:6s} n={n} exp={exposure}", out, f"{time.perf_counter() - t0:.1f}s", flush=True)
 
-def hot_by_offset(edges=(0, 2, 4, 6, 8, 10, 15, np.inf)):
-    """Per sensor, scene and exposure (8 frames, two 240x320 bursts, 0.5 % defects): the share of
-    the hot photosites flagged, binned by their offset over (their mean level x the pixel FPN):
-    an offset ``b`` at level ``x`` reads as a gain ``1 + b / x``, seen only beyond the gain spread."""
-    edges = np.asarray(edges, float)
-    for preset in ("raw12", "paper"):
-        sensor = PRESETS[preset]
-        for scene in ("dead-leaves", "procedural"):
-            for exposure in (0.75, 0.075):
-                found, total = np.zeros(len(edges) - 1), np.zeros(len(edges) - 1)
-                for seed in (0, 1):
-                    b = simulate_burst(shape=(240, 320), n_frames=8, sensor=sensor, scene=scene, exposure=exposure,
-                                       defects=0.005, seed=seed)
-                    codes = codes_of(b, sensor)
-                    level = b.gain[None] * b.ideal
-                    offset = np.mean(b.frames.astype(np.float64) - sensor.black_level - level, axis=0)
-                    hot = b.defects == D.KINDS["hot"]
-                    bins = np.digitize(offset[hot] / (level.mean(axis=0)[hot] * sensor.fpn_pixel), edges) - 1
-                    bins = np.clip(bins, 0, len(edges) - 2)
-                    total += np.bincount(bins, minlength=len(edges) - 1)
-                    found += np.bincount(bins, weights=(codes[hot] > 0).astype(float), minlength=len(edges) - 1)
-                rates = " ".join(f"{f / t * 100:.0f}%({int(t)})" if t else "-" for f, t in zip(found, total))
-                print(f"{preset:6s} {scene:12s} {exposure:5}: {rates}", flush=True)
-    print("bins of offset / (level x pixel FPN):", edges)
+def offset_over_gain_spread(b, sensor, hot):
+    """Each ``hot`` photosite's offset over (its mean level x the pixel FPN): an offset ``b`` at
+    level ``x`` reads as a gain ``1 + b / x``, seen only beyond the gain spread."""
+    level = b.gain[None] * b.ideal
+    offset = np.mean(b.frames.astype(np.float64) - sensor.black_level - level, axis=0)
+    return offset[hot] / (level.mean(axis=0)[hot] * sensor.fpn_pixel)
 
 
 def offset_z(b, sensor, hot):
     """Each ``hot`` photosite's offset over its standard error with the scene known: readings
     ``y_t = a x_t + b`` (shot, read and rounding noise), the gain ``a`` unknown with the plane's
-    spread as prior (``N(1, fpn^2)``). Where the scene along the trajectory is flat this is the
-    offset over (level x pixel FPN); a trajectory crossing an edge tells an offset from a gain."""
+    spread as prior (``N(1, fpn^2)``). Where the scene along the trajectory is flat this is
+    :func:`offset_over_gain_spread`; a trajectory crossing an edge tells an offset from a gain. At
+    z >= 6 a detector that knew the scene would find 98 % above a threshold flagging 1e-4 of the
+    healthy photosites."""
     x = b.ideal[:, hot].astype(np.float64)  # the reading a gain of 1 gives, DN
     a = b.gain[hot].astype(np.float64)
     var = (a * x / sensor.dn_per_e + sensor.read_noise_e**2) * sensor.dn_per_e**2 + 1 / 12.0
@@ -88,9 +72,9 @@ def offset_z(b, sensor, hot):
     return offset / np.sqrt(xx / (xx * bb - xb**2))
 
 
-def hot_by_identifiability(edges=(0, 4, 6, 10, 20, 40, np.inf)):
-    """As :func:`hot_by_offset`, binned by :func:`offset_z`: what a detector that knew the scene
-    could find (at z >= 6, 98 % of them above a threshold that flags 1e-4 of healthy ones)."""
+def hot_found(measure, edges):
+    """Per sensor, scene and exposure (8 frames, two 240x320 bursts, 0.5 % defects): the share of
+    the hot photosites flagged, binned by ``measure(burst, sensor, hot)``."""
     edges = np.asarray(edges, float)
     for preset in ("raw12", "paper"):
         sensor = PRESETS[preset]
@@ -101,19 +85,19 @@ def hot_by_identifiability(edges=(0, 4, 6, 10, 20, 40, np.inf)):
                     b = simulate_burst(shape=(240, 320), n_frames=8, sensor=sensor, scene=scene, exposure=exposure,
                                        defects=0.005, seed=seed)
                     hot = b.defects == D.KINDS["hot"]
-                    bins = np.clip(np.digitize(offset_z(b, sensor, hot), edges) - 1, 0, len(edges) - 2)
+                    bins = np.clip(np.digitize(measure(b, sensor, hot), edges) - 1, 0, len(edges) - 2)
                     total += np.bincount(bins, minlength=len(edges) - 1)
                     found += np.bincount(bins, weights=(codes_of(b, sensor)[hot] > 0).astype(float),
                                          minlength=len(edges) - 1)
                 rates = " ".join(f"{f / t * 100:.0f}%({int(t)})" if t else "-" for f, t in zip(found, total))
                 print(f"{preset:6s} {scene:12s} {exposure:5}: {rates}", flush=True)
-    print("bins of the offset's z with the scene known:", edges)
+    print(f"bins of {measure.__name__}:", edges)
 
 
 if __name__ == "__main__" and sys.argv[1:] == ["hot"]:
-    hot_by_offset()
+    hot_found(offset_over_gain_spread, (0, 2, 4, 6, 8, 10, 15, np.inf))
 elif __name__ == "__main__" and sys.argv[1:] == ["hotz"]:
-    hot_by_identifiability()
+    hot_found(offset_z, (0, 4, 6, 10, 20, 40, np.inf))
 elif __name__ == "__main__":
     for preset in ("paper", "raw12"):
         for scene in ("dead-leaves", "procedural"):
