@@ -137,13 +137,13 @@ def solve_planes(burst, frames, excluded, exposures, used: slice, in_frame, solv
     """k and confidence of every plane from the frames ``used``, with the FPN model and the gauge,
     and each plane's report and calibration (:class:`solve.fpnmodel.Calibration`, or None).
 
-    ``regions`` (grid name -> (rows, columns) slices) solves only there (k = 1 and confidence 0
-    elsewhere); ``models`` (plane name -> FPN model) forces each plane's model; ``split`` measures
-    the accurate solver's sigma_k and pixel FPN of each plane with two more fits, on the even and the
-    odd frames of ``used`` (on :func:`central` regions, and with :data:`MIN_SPLIT_FRAMES` or more; the
-    scene solver's sigma_k is measured by its noise probe, and halves of a burst are too few frames
-    for its latent scene), and ``calibrations``
-    (plane name -> Calibration) gives them as measured before."""
+    ``regions`` (grid name -> (rows, columns) slices) solves only there, and only the grids it names
+    (k = 1 and confidence 0 elsewhere); ``models`` (plane name -> FPN model) forces each plane's model;
+    ``split`` measures the accurate solver's sigma_k and pixel FPN of each plane with two more fits, on
+    the even and the odd frames of ``used`` (on :func:`central` regions, and with
+    :data:`MIN_SPLIT_FRAMES` or more; the scene solver's sigma_k is measured by its noise probe, and
+    halves of a burst are too few frames for its latent scene), and ``calibrations`` (plane name ->
+    Calibration) gives them as measured before."""
     k, confidence, solved = solve_raw(burst, frames, excluded, exposures, used, in_frame, solver, progress,
                                       regions=regions)
     halves = None
@@ -154,6 +154,8 @@ def solve_planes(burst, frames, excluded, exposures, used: slice, in_frame, solv
                                                    in_frame, solver, progress, regions=middle)]
     reports, calibrated = {}, {}
     for name, pick, _ in plane_views(burst.cfa, burst.channels):  # the gauge and the FPN model, plane by plane
+        if name not in solved:  # its grid has no region: k = 1, confidence 0
+            continue
         report, structured, calibration = solved[name], False, None
         kp = pick(k)
         if solver.calibrated:
@@ -196,6 +198,8 @@ def solve_raws(burst, frames, excluded, exposures, useds, in_frame, solver: Solv
         left_out = None if excluded is None else np.broadcast_to(excluded[used, ..., None], fit.shape)  # every channel
         motion = in_frame.select(range(len(frames))[used])
         for grid in grids_of(burst, frames, solver.method):
+            if regions is not None and grid.name not in regions:
+                continue
             grid_motion = motion.conjugate(grid.S)
             if regions is None:
                 grid_frames = grid.gather(fit)
@@ -277,27 +281,28 @@ def check(burst, frames, excluded, exposures, n_fit, in_frame, solver: Solver, r
     on one :data:`WIDER` times as wide."""
     grids = grids_of(burst, frames, solver.method)
 
-    def look(side: int) -> dict:
-        regions = central(burst, frames, solver, side)
+    def look(side: int, names) -> dict:
+        """The check of the grids ``names`` on their central ``side`` px."""
+        regions = {name: r for name, r in central(burst, frames, solver, side).items() if name in names}
         k_check, confidence_check, _, _ = solve_planes(
             burst, frames, excluded, exposures, slice(1, n_fit), in_frame, solver, progress, regions=regions,
             models={name: p.fpn_model for name, p in reports.items()}, calibrations=calibrations)
-        checks = holdout_checks(frames, excluded, exposures, in_frame, k_check, grids=grids,
-                                saturation=burst.saturation, regions=regions,
-                                disagreement=disagreement(k_check, confidence_check, k, confidence,
-                                                          calibrated=solver.calibrated))
-        return {name: (c, side) for name, c in checks.items()}
+        return holdout_checks(frames, excluded, exposures, in_frame, k_check,
+                              grids=[grid for grid in grids if grid.name in names], saturation=burst.saturation,
+                              regions=regions, disagreement=disagreement(k_check, confidence_check, k, confidence,
+                                                                         calibrated=solver.calibrated))
 
-    checks = look(CHECK_SIDE)
-    undecided = [grid.name for grid in grids if not checks[grid.name][0].passed(CHECK_Z)
-                 and checks[grid.name][0].ratio < 1 and max(grid.shape) > CHECK_SIDE]
+    checks = look(CHECK_SIDE, [grid.name for grid in grids])
+    sides = dict.fromkeys(checks, CHECK_SIDE)
+    undecided = [grid.name for grid in grids if not checks[grid.name].passed(CHECK_Z)
+                 and checks[grid.name].ratio < 1 and max(grid.shape) > CHECK_SIDE]
     if undecided:
-        wider = look(WIDER * CHECK_SIDE)
-        checks.update({name: wider[name] for name in undecided})
-    failed = [grid for grid in grids if not checks[grid.name][0].passed(CHECK_Z)]
-    every = pooled(c for c, _ in checks.values())
-    planes = {name: PlaneCheck(c.ratio, c.standard_error, c.passed(CHECK_Z), c.left_out, side)
-              for name, (c, side) in checks.items()}
+        checks.update(look(WIDER * CHECK_SIDE, undecided))
+        sides.update(dict.fromkeys(undecided, WIDER * CHECK_SIDE))
+    failed = [grid for grid in grids if not checks[grid.name].passed(CHECK_Z)]
+    every = pooled(checks.values())
+    planes = {name: PlaneCheck(c.ratio, c.standard_error, c.passed(CHECK_Z), c.left_out, sides[name])
+              for name, c in checks.items()}
     return Holdout(held_out, every.ratio, len(failed) < len(grids), every.standard_error, planes), failed
 
 
