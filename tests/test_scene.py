@@ -98,6 +98,50 @@ def test_readings_that_follow_the_model_give_the_gains_back(aperture):
     assert metrics.residual_fpn_percent(result.k, gain, inner) < 0.015
 
 
+def _off_model(motion, shift_px, rotation, exposure):
+    """``motion`` with frame 3 told ``shift_px`` (x, y) and ``rotation`` (rad, about the origin) off,
+    and readings where frame 5 took ``exposure`` times the light it is said to: what a warp model
+    the burst does not follow, or a flicker that nobody measured, hands the solver."""
+    homographies = motion.homographies.copy()
+    error = np.eye(3)
+    error[:2, :2] = [[np.cos(rotation), -np.sin(rotation)], [np.sin(rotation), np.cos(rotation)]]
+    error[:2, 2] = shift_px
+    homographies[3] = error @ homographies[3]
+    scale = np.ones((len(homographies), 1, 1), np.float32)
+    scale[5] = exposure
+    return GlobalWarp(homographies), scale
+
+
+def test_warps_and_exposures_off_the_model_are_refined_against_it():
+    # readings of the solver's own model, told a warp 0.3 px and 2 mrad (0.16 px at the far corner)
+    # off on one frame and an exposure 3 % off on another: measured 0.21 % residual refined, 1.30 %
+    # without (0.019 % when every frame is told right)
+    frames, motion, gain = _model_burst()
+    told, scale = _off_model(motion, (0.3, -0.2), 0.002, 1.03)
+    options = SceneOptions(smoothness=1e-6, gauge_sigma=1e3)
+    inner = metrics.interior_mask(gain.shape, 12)
+
+    def error(refine):
+        result = solve_scene(frames * scale, told, options=dataclasses.replace(options, refine_frames=refine),
+                             workers=1)
+        return metrics.residual_fpn_percent(result.k, gain, inner & (result.confidence > 0))
+
+    assert error(True) <= 0.25 * error(False)
+
+
+def test_warps_the_burst_follows_are_left_as_they_are():
+    # the refinement changes nothing where the frames follow their warps (no step reaches
+    # refine_px or refine_exposure): the same map bit for bit as without it (seeds 1-3, with
+    # noise and without)
+    burst, _, frames = _paper_burst(1, noise=False)
+    options = SceneOptions()
+    on = solve_scene(frames, burst.homographies, options=options, workers=1)
+    off = solve_scene(frames, burst.homographies, options=dataclasses.replace(options, refine_frames=False),
+                      workers=1)
+    np.testing.assert_array_equal(on.k, off.k)
+    np.testing.assert_array_equal(on.confidence, off.confidence)
+
+
 def _paper_burst(seed, noise: bool):
     sensor = PRESETS["paper"]
     if not noise:
