@@ -7,13 +7,14 @@ from __future__ import annotations
 import numpy as np
 
 
-def refine_frames(forward, s, a, y, valid, noise, shape, *, scale: int, refine_px: float, refine_exposure: float):
+def refine_frames(forward, s, predicted, a, y, valid, noise, shape, *, scale: int, refine_px: float,
+                  refine_exposure: float):
     """One Gauss-Newton step of every frame's warp and exposure against a fitted scene and gains.
 
     ``forward`` samples a fine scene (``scale`` samples per grid px of a ``shape`` grid) at every
-    frame's readings, as the frames are now registered; ``s`` is the scene, ``a`` the gains, ``y``
-    the readings (frame-major), ``valid`` the readings used and ``noise`` the ``(alpha, beta)`` of
-    their variance ``alpha + beta * level``.
+    frame's readings, as the frames are now registered; ``s`` is the scene, ``predicted`` its
+    ``forward``, ``a`` the gains, ``y`` the readings (frame-major), ``valid`` the readings used and
+    ``noise`` the ``(alpha, beta)`` of their variance ``alpha + beta * level``.
 
     Where frame ``t``'s pixels see the first frame moves by a quadratic field over the tile (6
     coefficients per axis) and its exposure by a factor, fitted to the residuals with the noise
@@ -29,7 +30,6 @@ def refine_frames(forward, s, a, y, valid, noise, shape, *, scale: int, refine_p
     grid = s.reshape(scale * shape[0], scale * shape[1])
     gx = np.gradient(grid, axis=1).reshape(-1) * scale  # per grid px
     gy = np.gradient(grid, axis=0).reshape(-1) * scale
-    predicted = forward(s)
     slope_x, slope_y = forward(gx), forward(gy)
     residual = y - np.tile(a, n_frames) * predicted
     alpha, beta = noise

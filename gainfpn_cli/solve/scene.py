@@ -34,8 +34,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..geometry.resample import low_pass, positions
-from .result import GainResult, SceneStats, confidence_from_sigma
 from .frames import refine_frames
+from .result import GainResult, SceneStats, confidence_from_sigma
 from .tiling import Tile, blend, checked_problem, solve_tiles, tiles_of
 
 
@@ -263,7 +263,6 @@ def _solve_tile(tile: Tile) -> tuple[np.ndarray, np.ndarray, int]:
         a += da
         iterations += its
         step += 1
-        moved = False
         if refine and step < opt.steps + opt.extra_steps:
             moves, gains = _refine(A, s, a, y, valid, (h, w), opt)
             moved = bool(np.any(moves) or np.any(gains != 1))
@@ -292,8 +291,8 @@ def _refine(A, s, a, y, valid, shape, opt: SceneOptions):
     predicted = A.forward(s)
     residual = y - np.tile(a, y.size // a.size) * predicted
     noise = noise_variance(residual[valid], predicted[valid])
-    return refine_frames(A.forward, s, a, y, valid, noise, shape, scale=opt.scale, refine_px=opt.refine_px,
-                         refine_exposure=opt.refine_exposure)
+    return refine_frames(A.forward, s, predicted, a, y, valid, noise, shape, scale=opt.scale,
+                         refine_px=opt.refine_px, refine_exposure=opt.refine_exposure)
 
 
 def _mean_along(A, weight, y, valid):
