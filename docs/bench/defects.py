@@ -19,6 +19,7 @@ from gainfpn_cli.geometry.planes import plane_views
 from gainfpn_cli.geometry.warps import GlobalWarp
 from gainfpn_cli.sim.sensor import PRESETS
 from gainfpn_cli.sim.simulate import simulate_burst
+from gainfpn_cli.sim.truth import hot_offset_z
 from gainfpn_cli.solve import defects as D
 
 
@@ -56,22 +57,6 @@ def offset_over_gain_spread(b, sensor, hot):
     return offset[hot] / (level.mean(axis=0)[hot] * sensor.fpn_pixel)
 
 
-def offset_z(b, sensor, hot):
-    """Each ``hot`` photosite's offset over its standard error with the scene known: readings
-    ``y_t = a x_t + b`` (shot, read and rounding noise), the gain ``a`` unknown with the plane's
-    spread as prior (``N(1, fpn^2)``). Where the scene along the trajectory is flat this is
-    :func:`offset_over_gain_spread`; a trajectory crossing an edge tells an offset from a gain. At
-    z >= 6 a detector that knew the scene would find 98 % above a threshold flagging 1e-4 of the
-    healthy photosites."""
-    x = b.ideal[:, hot].astype(np.float64)  # the reading a gain of 1 gives, DN
-    a = b.gain[hot].astype(np.float64)
-    var = (a * x / sensor.dn_per_e + sensor.read_noise_e**2) * sensor.dn_per_e**2 + 1 / 12.0
-    offset = np.mean(b.frames[:, hot].astype(np.float64) - sensor.black_level - a * x, axis=0)
-    w = 1 / var
-    xx, xb, bb = (w * x * x).sum(0) + 1 / sensor.fpn_pixel**2, (w * x).sum(0), w.sum(0)
-    return offset / np.sqrt(xx / (xx * bb - xb**2))
-
-
 def hot_found(measure, edges):
     """Per sensor, scene and exposure (8 frames, two 240x320 bursts, 0.5 % defects): the share of
     the hot photosites flagged, binned by ``measure(burst, sensor, hot)``."""
@@ -97,7 +82,7 @@ def hot_found(measure, edges):
 if __name__ == "__main__" and sys.argv[1:] == ["hot"]:
     hot_found(offset_over_gain_spread, (0, 2, 4, 6, 8, 10, 15, np.inf))
 elif __name__ == "__main__" and sys.argv[1:] == ["hotz"]:
-    hot_found(offset_z, (0, 4, 6, 10, 20, 40, np.inf))
+    hot_found(hot_offset_z, (0, 4, 6, 10, 20, 40, np.inf))
 elif __name__ == "__main__":
     for preset in ("paper", "raw12"):
         for scene in ("dead-leaves", "procedural"):
