@@ -185,7 +185,11 @@ class _SparseKKT:
         edge = sp.csc_matrix(np.full((n, 1), s))
         K = sp.bmat([[self.Q + ridge * sp.eye(n), edge], [edge.T, None]], format="csc")
         try:
-            lu = splu(K)
+            # K's pattern is symmetric: ordered on K + K^T, with the diagonal pivot kept unless below
+            # 1 % of its column's largest (threshold pivoting). The default column ordering filled a
+            # 5121-row KKT of a 64x80 block 5x more (10.0 M entries of L + U against 2.0 M) and took
+            # 20x the time; the solutions agree to 1e-10.
+            lu = splu(K, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.01, options={"SymmetricMode": True})
         except RuntimeError:  # exactly singular
             return None, np.inf
         inv = LinearOperator(K.shape, matvec=lu.solve, rmatvec=lambda x: lu.solve(x, trans="T"), dtype=float)
