@@ -69,13 +69,14 @@ QUANTISED_STEPS = 3.0
 Z_DEFECT = 6.0
 #: Fewest frames a photosite is tested on: with fewer, a median and a spread are too uncertain.
 MIN_FRAMES = 4
-#: Score of an offset fitted with the gain (:func:`_offset_scores`) past which a photosite is hot,
-#: and the fewest frames predicted from the other frames it is fitted on. Measured
-#: (docs/bench/defects.py, 240x320, 0.5 % defects and the same bursts without): at 8 and 7 alike,
-#: at most 0.07e-4 of the healthy photosites flagged over the table's bursts of 8 frames, 7
-#: finding 1-4 % more of the hot ones; with 5 frames (3 degrees of freedom in the fit's own
-#: scatter) an earlier form of the fit flagged 2e-4 at 8, hence 6 frames.
+#: Score of an offset fitted with the gain (:func:`_offset_scores`) past which a photosite is hot.
+#: Measured (docs/bench/defects.py, 240x320, 0.5 % defects and the same bursts without): at 8 and
+#: 7 alike, at most 0.07e-4 of the healthy photosites flagged over the table's bursts of 8
+#: frames, 7 finding 1-4 % more of the hot ones; 8 keeps a margin for scenes not tuned on.
 Z_OFFSET = 8.0
+#: Fewest frames, predicted from the other frames, that the offset is fitted on. At 5, ten
+#: defect-free 144x176 raw12 dead-leaves bursts of 5 frames (seeds 20-29, true motion) had 9 more
+#: healthy photosites flagged (56 against 47 of 253 440), the table's 240x320 ones 0-1 more.
 MIN_FIT_FRAMES = 6
 #: Scale of the Cauchy weights of the offset fit, in standard deviations of a reading: the
 #: frames where the prediction misses (an edge, a border) stop pulling the fit (95 % efficiency
@@ -83,6 +84,10 @@ MIN_FIT_FRAMES = 6
 #: offset): reweighting twice more changed the table's detections by at most 0.6 % of the hot
 #: photosites.
 CAUCHY_SCALE = 2.385
+#: E[c^2 u^2 / (1 + u^2)] for a unit Gaussian residual (u = r / c, c = CAUCHY_SCALE): the fit's own
+#: Cauchy-weighted scatter is divided by it, so that Gaussian residuals of the model's variance
+#: give 1 (Monte Carlo, 10^7 draws).
+CAUCHY_CONSISTENCY = 0.697
 #: Fewest good neighbours (of 8) whose median predicts a photosite where the frames do not.
 MIN_NEIGHBOURS = 3
 #: Scene levels below this fraction of the plane's bright level (99th percentile) do not enter
@@ -116,7 +121,7 @@ def detect(frames: np.ndarray, warp, *, saturation: float | None = None,
     good = frames < (np.inf if saturation is None else saturation)
     if excluded is not None:
         good &= ~excluded
-    x, valid, framed = _predictions(frames, good, warp)
+    x, valid, from_frames = _predictions(frames, good, warp)
     step = _quantisation_step(read)
     floor = max(MIN_LEVEL * float(np.quantile(x[valid], 0.99)) if valid.any() else 0.0, LEVEL_STEPS * step)
     usable = valid & (x > floor)
@@ -142,9 +147,8 @@ def detect(frames: np.ndarray, warp, *, saturation: float | None = None,
     stuck = ~dead & _stuck(frames, read, good, x, valid, typical, noise, step)
     hot = (z > Z_DEFECT) & (lowest > typical)
     if n_frames >= MIN_FIT_FRAMES:
-        fitted = usable & framed
-        offset_z = _offset_scores(frames, x, fitted, typical, plane_spread, np.maximum(scatter, local), noise)
-        hot |= (offset_z > Z_OFFSET) & (fitted.sum(axis=0) >= MIN_FIT_FRAMES)
+        usable &= from_frames  # the offset is fitted only where the other frames predict the scene
+        hot |= _offset_scores(frames, x, usable, typical, plane_spread, scatter, noise) > Z_OFFSET
     hot &= tested & ~dead & ~stuck
     for mask, code in ((dead, DEAD), (stuck, STUCK), (hot, HOT)):
         codes[mask] = code
@@ -168,17 +172,17 @@ def _predictions(frames: np.ndarray, good: np.ndarray, warp) -> tuple[np.ndarray
     del on_ref
     x = np.empty_like(frames)
     valid = np.empty(frames.shape, bool)
-    framed = np.empty(frames.shape, bool)
+    from_frames = np.empty(frames.shape, bool)
     for t in range(n_frames):
         M = warp.pair(t, 0, region)
         x[t] = sample(scene, M, (h, w), kernel=KERNEL)
-        framed[t] = known = valid_samples(seen, M, (h, w), kernel=KERNEL)
+        from_frames[t] = known = valid_samples(seen, M, (h, w), kernel=KERNEL)
         valid[t] = good[t] & known
         border = np.nonzero(~known)  # the 8 neighbours' median only where the frames do not see the point
         around, count = _ring_median(frames[t], good[t], border)
         x[t][border] = np.nan_to_num(around)
         valid[t][border] = good[t][border] & (count >= MIN_NEIGHBOURS)  # edges of the frame have 3 or 5
-    return x, valid, framed
+    return x, valid, from_frames
 
 
 def _ring_median(values: np.ndarray, known: np.ndarray, at: tuple[np.ndarray, np.ndarray]):
@@ -212,38 +216,40 @@ def _offset_scores(y: np.ndarray, x: np.ndarray, fitted: np.ndarray, typical: fl
                    scatter: np.ndarray, noise) -> np.ndarray:
     """Per photosite, the offset ``b`` of ``y_t = a x_t + b`` fitted to its readings in the frames
     ``fitted``, over its standard error, in units of the plane's (and where larger its 5x5
-    neighbourhood's) robust spread of that score. The gain ``a`` has the plane's as prior
-    (``typical``, ``spread``): along a flat trajectory the offset is then the response's excess,
-    across an edge the two are told apart. A reading's variance is the noise at the photosite's
-    mean level plus the prediction's error around (the 5x5 median of the ratios' ``scatter`` over
-    the frames times the level), the frames are Cauchy-weighted by their residuals about a robust
-    start (the plane's gain, the median offset), and the error is scaled up by the fit's own
-    scatter where that is larger."""
-    prior = np.float32(1.0 / max(spread, 1e-6) ** 2)
+    neighbourhood's) robust spread of that score; 0 where fewer than :data:`MIN_FIT_FRAMES` are
+    fitted. The gain ``a`` has the plane's as prior (``typical``, ``spread``): along a flat
+    trajectory the offset is then the response's excess, across an edge the two are told apart.
+    A reading's variance is the noise at the photosite's mean level or, where larger, the
+    prediction's error around it (the 5x5 median of the ratios' ``scatter`` over the frames times
+    the level); the frames are Cauchy-weighted by their residuals about a robust start (the
+    plane's gain, the median offset), and the error is scaled up by the fit's own scatter where
+    that is larger. A quarter of :data:`STRIP_ROWS` rows at a time."""
     count = fitted.sum(axis=0)
-    level = np.where(fitted, x, 0).sum(axis=0) / np.maximum(count, 1)
-    var = np.maximum(noise(level), _local_median(scatter * level) ** 2).astype(np.float32)
-    weight_of = 1.0 / np.maximum(var, 1e-12)  # noise-free data: no zero division
-    score = np.zeros(y.shape[1:])
+    level = np.zeros(count.shape, np.float32)
     for rows in _strips(y.shape[1]):
+        level[rows] = np.where(fitted[:, rows], x[:, rows], 0).sum(axis=0) / np.maximum(count[rows], 1)
+    var = np.maximum(noise(level), _local_median(scatter * level) ** 2).astype(np.float32)
+    root_weight = 1.0 / np.sqrt(np.maximum(var, 1e-12))  # noise-free data: no zero division
+    prior = 1.0 / max(spread, 1e-6) ** 2
+    score = np.zeros(count.shape)
+    for rows in _strips(y.shape[1], max(1, STRIP_ROWS // 4)):  # a dozen temporaries of a strip's stack
         use = fitted[:, rows]
         ys, xs = np.where(use, y[:, rows], np.float32(0)), np.where(use, x[:, rows], np.float32(0))
-        root = use * np.sqrt(weight_of[rows])
-        weight = root * root
-        b = np.nan_to_num(nan_median(np.where(use, ys - typical * xs, np.nan)))
-        z = (ys - typical * xs - b) * (root / CAUCHY_SCALE)
-        w = weight / (1 + z * z)
+        root = use * (root_weight[rows] / CAUCHY_SCALE)  # z / c of a residual: residual x root
+        start = ys - typical * xs
+        start -= np.nan_to_num(nan_median(np.where(use, start, np.nan)))
+        w = root * root / (1 + (start * root) ** 2) * CAUCHY_SCALE**2
         wx = w * xs
         sxx, sx, s1 = (wx * xs).sum(0, np.float64) + prior, wx.sum(0, np.float64), w.sum(0, np.float64)
         sxy, sy = (wx * ys).sum(0, np.float64) + prior * typical, (w * ys).sum(0, np.float64)
         det = np.maximum(sxx * s1 - sx**2, 1e-30)
         a, b = ((s1 * sxy - sx * sy) / det).astype(np.float32), ((sxx * sy - sx * sxy) / det).astype(np.float32)
-        z = (ys - a * xs - b) * (root / CAUCHY_SCALE)
-        own = CAUCHY_SCALE**2 * (use * z * z / (1 + z * z)).sum(0, np.float64) / np.maximum(count[rows] - 2, 1)
-        score[rows] = b / np.sqrt(sxx / det * np.maximum(own, 1.0))
-    tested = count >= 2
+        u = (ys - a * xs - b) * root
+        own = CAUCHY_SCALE**2 * (u * u / (1 + u * u)).sum(0, np.float64) / np.maximum(count[rows] - 2, 1)
+        score[rows] = b / np.sqrt(sxx / det * np.maximum(own / CAUCHY_CONSISTENCY, 1.0))
+    tested = count >= MIN_FIT_FRAMES
     if not tested.any():
-        return score
+        return np.zeros(count.shape)
     centre = float(np.median(score[tested]))
     scale = MAD_TO_SIGMA * float(np.median(np.abs(score[tested] - centre)))
     scale = np.maximum(scale, MAD_TO_SIGMA * _local_median(np.where(tested, np.abs(score - centre), 0.0)))
@@ -262,9 +268,10 @@ def _level_and_scatter(y: np.ndarray, x: np.ndarray, response: np.ndarray, where
     return np.concatenate(level), np.concatenate(scatter)
 
 
-def _strips(h: int):
-    """Slices of :data:`STRIP_ROWS` rows covering ``h``."""
-    return [slice(y0, min(y0 + STRIP_ROWS, h)) for y0 in range(0, h, STRIP_ROWS)]
+def _strips(h: int, rows: int | None = None):
+    """Slices of ``rows`` (:data:`STRIP_ROWS`) rows covering ``h``."""
+    rows = rows or STRIP_ROWS
+    return [slice(y0, min(y0 + rows, h)) for y0 in range(0, h, rows)]
 
 
 def nan_median(stack: np.ndarray) -> np.ndarray:
