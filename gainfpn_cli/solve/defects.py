@@ -25,7 +25,8 @@ Kinds, in the order they are tested (:data:`KINDS` gives the codes of ``gain_map
   would vary more than :data:`QUANTISED_STEPS` quantisation steps, by more than 1 /
   :data:`STUCK_SPREAD` times as much (in RMS) (the smaller of its 8 neighbours' and the scene's
   along its trajectory plus the noise at its level);
-* ``hot``: a response far above the plane's, ``z > Z_DEFECT``, and above it in every frame (a
+* ``hot``: a response far above the plane's, ``z > Z_DEFECT`` (``BORDER_Z`` times that where
+  fewer than :data:`MIN_FRAMES` frames predict it from the other frames), and above it in every frame (a
   dark-current offset seen as a gain: where the scene along its trajectory is flat, an offset
   and a gain cannot be told apart from the burst, and one smaller than the plane's gain spread
   goes unseen; a dark frame finds those, :func:`hot_in_dark`); or an offset far above the
@@ -69,11 +70,12 @@ QUANTISED_STEPS = 3.0
 Z_DEFECT = 6.0
 #: Fewest frames a photosite is tested on: with fewer, a median and a spread are too uncertain.
 MIN_FRAMES = 4
-#: A hot response tested on fewer than MIN_FRAMES frames predicted from the other frames (the
-#: rest by the 8 neighbours' median, at the borders) needs this many times Z_DEFECT. Measured on
-#: ten defect-free 144x176 raw12 dead-leaves bursts of 5 frames (seeds 20-29): 40 of the 47
-#: healthy photosites flagged were hot within 7 px of the frame's edge; with 2, 18 flagged in all
-#: (0.71e-4), and the table of docs/bench/defects.py lost 0.5-3 % of the hot photosites found.
+#: A hot response where fewer than MIN_FRAMES of the frames it is tested on predict the photosite
+#: from the other frames (the borders, where the 8 neighbours' median does, and around saturated
+#: or excluded readings) needs this many times Z_DEFECT. Measured on ten defect-free 144x176 raw12
+#: dead-leaves bursts of 5 frames (seeds 20-29): 40 of the 47 healthy photosites flagged were hot
+#: within 7 px of the frame's edge; with 2, 18 flagged in all (0.71e-4), and the table of
+#: docs/bench/defects.py lost 0-3 percentage points of the hot photosites found.
 BORDER_Z = 2.0
 #: Score of an offset fitted with the gain (:func:`_offset_scores`) past which a photosite is hot.
 #: Measured (docs/bench/defects.py, 240x320, 0.5 % defects and the same bursts without): at 8 and
@@ -151,10 +153,9 @@ def detect(frames: np.ndarray, warp, *, saturation: float | None = None,
     whole = usable.all(axis=0) & ~dead
     noise = _noise_model(*_level_and_scatter(frames, x, response, whole), n_frames)
     stuck = ~dead & _stuck(frames, read, good, x, valid, typical, noise, step)
-    framed = (usable & from_frames).sum(axis=0) >= MIN_FRAMES
-    hot = (z > np.where(framed, Z_DEFECT, BORDER_Z * Z_DEFECT)) & (lowest > typical)
+    usable &= from_frames  # from here on, only readings the other frames predict
+    hot = (z > np.where(usable.sum(axis=0) >= MIN_FRAMES, Z_DEFECT, BORDER_Z * Z_DEFECT)) & (lowest > typical)
     if n_frames >= MIN_FIT_FRAMES:
-        usable &= from_frames  # the offset is fitted only where the other frames predict the scene
         hot |= _offset_scores(frames, x, usable, typical, plane_spread, scatter, noise) > Z_OFFSET
     hot &= tested & ~dead & ~stuck
     for mask, code in ((dead, DEAD), (stuck, STUCK), (hot, HOT)):
