@@ -240,36 +240,36 @@ def _solve_tile(tile: Tile) -> tuple[np.ndarray, np.ndarray, int]:
     # looks like a misregistration: refined there, readings the model explains exactly lost
     # 0.0025 -> 0.028 % and raw12 bursts gained nothing (tests/test_scene.py, docs/method.md)
     refine = opt.refine_frames and opt.aperture == 1
-    step, moved = 0, False
-    while step < opt.steps or (moved and step < opt.steps + opt.extra_steps):
+    step = 0
+    while True:
         predicted = A.forward(s)
         residual = y - np.tile(a, n_frames) * predicted
+        fitted = None if step == 0 and not refine else noise_variance(residual[valid], predicted[valid])
+        moved = False
+        if refine and step < opt.steps + opt.extra_steps:  # at step 0 against the readings' mean along the warps
+            moves, gains = refine_frames(A.forward, s, predicted, a, y, valid, fitted, (h, w), scale=opt.scale,
+                                         refine_px=opt.refine_px, refine_exposure=opt.refine_exposure)
+            moved = bool(np.any(moves) or np.any(gains != 1))
+            if moved:  # sample the scene where the frames now say they see it
+                points, exposure, A, valid, y = _moved(points, moves, exposure, gains, frames, good, fine, opt)
+                if step == 0:  # ... and start it again there, before s and a take the misregistration up
+                    s = _mean_along(A, valid / np.maximum(noise[0], 1e-12), y, valid)
+                predicted = A.forward(s)
+                residual = y - np.tile(a, n_frames) * predicted
+                fitted = None if step == 0 else noise_variance(residual[valid], predicted[valid])
+        if step >= opt.steps + (opt.extra_steps if moved else 0):  # a frame that moved adds a step
+            break
         if step > 0:
-            noise = noise_variance(residual[valid], predicted[valid])
+            noise = fitted
         variance = np.maximum(noise[0] + noise[1] * np.abs(predicted), 1e-12)
         weight = valid / variance
         if step > 0 and opt.robust_scale is not None:
             weight /= 1.0 + residual**2 / (opt.robust_scale**2 * variance)
-        if step == 0 and refine:  # against the readings' mean along the warps, before s and a take it up
-            moves, gains = _refine(A, s, a, y, valid, (h, w), opt)
-            if np.any(moves) or np.any(gains != 1):
-                points, exposure, A, valid, y = _moved(points, moves, exposure, gains, frames, good, fine, opt)
-                weight = valid / variance
-                s = _mean_along(A, weight, y, valid)
-                predicted = A.forward(s)
-                residual = y - np.tile(a, n_frames) * predicted
         ds, da, its = _gauss_newton_step(A, gram, weight, residual, predicted, a, s, opt)
         s += ds
         a += da
         iterations += its
         step += 1
-        if refine and step < opt.steps + opt.extra_steps:
-            moves, gains = _refine(A, s, a, y, valid, (h, w), opt)
-            moved = bool(np.any(moves) or np.any(gains != 1))
-            if moved:  # sample the scene where the frames now say they see it
-                points, exposure, A, valid, y = _moved(points, moves, exposure, gains, frames, good, fine, opt)
-    predicted = A.forward(s)
-    residual = y - np.tile(a, n_frames) * predicted
     k = 1.0 / np.where(est & (a > 0), a, 1.0).reshape(h, w)
     est = est.reshape(h, w) & (a.reshape(h, w) > 0)
     k = k / low_pass(k, opt.gauge_sigma, est)  # the gauge: low band exactly 1
@@ -283,16 +283,6 @@ def _solve_tile(tile: Tile) -> tuple[np.ndarray, np.ndarray, int]:
     fitted = probe - np.tile(a, n_frames) * A.forward(ds) - predicted * np.tile(da, n_frames)
     confidence = _confidence(residual, fitted, probe, da, variance, weight, a, est, n_frames)
     return k.astype(np.float32), confidence.astype(np.float32), iterations
-
-
-def _refine(A, s, a, y, valid, shape, opt: SceneOptions):
-    """:func:`solve.frames.refine_frames` of a tile at its current fit, with the noise model its
-    residuals give."""
-    predicted = A.forward(s)
-    residual = y - np.tile(a, y.size // a.size) * predicted
-    noise = noise_variance(residual[valid], predicted[valid])
-    return refine_frames(A.forward, s, predicted, a, y, valid, noise, shape, scale=opt.scale,
-                         refine_px=opt.refine_px, refine_exposure=opt.refine_exposure)
 
 
 def _mean_along(A, weight, y, valid):
