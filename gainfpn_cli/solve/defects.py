@@ -137,11 +137,9 @@ def detect(frames: np.ndarray, warp, *, saturation: float | None = None,
     tested = n >= MIN_FRAMES
     if not tested.any():
         return codes
-    typical = float(np.median(response[tested]))
-    plane_spread = MAD_TO_SIGMA * float(np.median(np.abs(response[tested] - typical)))
     # the plane's spread, or its neighbourhood's where larger: beside an edge or a border the
     # prediction misses, consistently over the frames, for every photosite around
-    spread = np.maximum(plane_spread, MAD_TO_SIGMA * _local_median(np.where(tested, np.abs(response - typical), 0.0)))
+    typical, plane_spread, spread = _robust_spread(response, tested)
     # the median of n ratios scatters pi/2 times as much (in variance) as their mean; a scatter
     # from a few frames can be small by chance: not below its neighbourhood's (prediction errors
     # near an edge are shared by the photosites along it)
@@ -258,10 +256,18 @@ def _offset_scores(y: np.ndarray, x: np.ndarray, fitted: np.ndarray, typical: fl
     tested = count >= MIN_FIT_FRAMES
     if not tested.any():
         return np.zeros(count.shape)
-    centre = float(np.median(score[tested]))
-    scale = MAD_TO_SIGMA * float(np.median(np.abs(score[tested] - centre)))
-    scale = np.maximum(scale, MAD_TO_SIGMA * _local_median(np.where(tested, np.abs(score - centre), 0.0)))
+    centre, _, scale = _robust_spread(score, tested)
     return np.where(tested, (score - centre) / np.maximum(scale, 1e-12), 0.0)
+
+
+def _robust_spread(values: np.ndarray, tested: np.ndarray) -> tuple[float, float, np.ndarray]:
+    """The median of ``values`` over the ``tested`` photosites, their robust spread (MAD), and
+    per photosite that spread or, where larger, the robust spread of the tested values about the
+    median over its 5x5 neighbourhood."""
+    centre = float(np.median(values[tested]))
+    spread = MAD_TO_SIGMA * float(np.median(np.abs(values[tested] - centre)))
+    around = MAD_TO_SIGMA * _local_median(np.where(tested, np.abs(values - centre), 0.0))
+    return centre, spread, np.maximum(spread, around)
 
 
 def _level_and_scatter(y: np.ndarray, x: np.ndarray, response: np.ndarray, where: np.ndarray):

@@ -192,14 +192,15 @@ class _SparseKKT:
             # 20x the time; the solutions agree to 1e-10. Multipliers up to 100 are allowed: one
             # step of refinement, and the default (partial pivoting) if the residual stays large.
             lu = splu(K, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.01, options={"SymmetricMode": True})
-            x = _refined(K, lu, rhs)
+            norm = float(abs(K).sum(axis=0).max())  # K is symmetric: its 1- and inf-norms agree
+            x = _refined(K, norm, lu, rhs)
             if x is None:
                 lu = splu(K)
                 x = lu.solve(rhs)
         except RuntimeError:  # exactly singular
             return None, np.inf
         inv = LinearOperator(K.shape, matvec=lu.solve, rmatvec=lambda x: lu.solve(x, trans="T"), dtype=float)
-        cond = float(abs(K).sum(axis=0).max()) * onenormest(inv)
+        cond = norm * onenormest(inv)
         return x[:n], cond
 
 
@@ -209,11 +210,11 @@ class _SparseKKT:
 REFINED_RESIDUAL = 1e-12
 
 
-def _refined(K, lu, rhs) -> np.ndarray | None:
+def _refined(K, norm: float, lu, rhs) -> np.ndarray | None:
     """``K x = rhs`` by ``lu`` and one step of iterative refinement; None if the scaled residual
-    is above :data:`REFINED_RESIDUAL`."""
+    (``norm``: K's inf-norm) is above :data:`REFINED_RESIDUAL`."""
     x = lu.solve(rhs)
     x = x + lu.solve(rhs - K @ x)
-    scale = float(abs(K).sum(axis=1).max()) * float(np.abs(x).max()) + float(np.abs(rhs).max())
+    scale = norm * float(np.abs(x).max()) + float(np.abs(rhs).max())
     residual = float(np.abs(rhs - K @ x).max())
     return x if np.isfinite(residual) and residual <= REFINED_RESIDUAL * scale else None
