@@ -190,8 +190,9 @@ def solve_raw(burst, frames, excluded, exposures, used: slice, in_frame, solver:
 
 def solve_raws(burst, frames, excluded, exposures, useds, in_frame, solver: Solver, progress, *,
                regions: dict | None = None) -> list:
-    """:func:`solve_raw` of each of the frame slices ``useds``. With more than one, the accurate
-    solver takes all their tiles in one go, so that regions of one tile each run on every worker."""
+    """:func:`solve_raw` of each of the frame slices ``useds``. The accurate and scene solvers take
+    every grid's tiles in one go, so that grids (a CFA's planes) and regions of one tile each run on
+    every worker."""
     jobs = []  # (which used, grid, the problem: frames, left out, motion, exposures)
     for i, used in enumerate(useds):
         fit = frames[used]  # a slice: a view
@@ -211,8 +212,8 @@ def solve_raws(burst, frames, excluded, exposures, useds, in_frame, solver: Solv
                 grid_motion = grid_motion.conjugate(np.array([[1.0, 0, columns.start], [0, 1.0, rows.start],
                                                               [0, 0, 1]]))
             jobs.append((i, grid, (grid_frames, grid_left_out, grid_motion, exposures[used])))
-    if solver.method in ("accurate", "scene") and len(useds) > 1:
-        update = progress("solve halves", 0) if progress else None
+    if solver.method in ("accurate", "scene") and len(jobs) > 1:  # every grid's tiles on every worker
+        update = progress("solve halves" if len(useds) > 1 else "solve", 0) if progress else None
         problems = [dict(frames=f, motion=m, saturation=burst.saturation, excluded=x, exposures=e,
                          options=scene_options(solver.scene, grid)) for _, grid, (f, x, m, e) in jobs]
         many = solve_accurate_many if solver.method == "accurate" else solve_scene_many

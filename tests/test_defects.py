@@ -179,7 +179,7 @@ def test_a_raw_burst_reports_its_defects_and_the_map_holds_them(tmp_path):
     sim, est = tmp_path / "sim", tmp_path / "est"
     run_cli("simulate", sim, "--preset", "raw12", "--format", "dng", "--size", "256x192", "--frames", "7",
             "--scene", "dead-leaves", "--exposure", "0.3", "--defects", "0.005", "--seed", "3")
-    record = json.loads(run_cli("estimate", sim, "-o", est, "--json", "--workers", "1").stdout)
+    record = json.loads(run_cli("estimate", sim, "-o", est, "--json", "--workers", "2").stdout)
     truth = read_exr_planes(sim / "truth" / "defects.exr")[0]["defect"]
     codes = read_exr_planes(est / "gain_map.exr")[0]["defect"]
     assert (codes[(truth == D.DEAD) | (truth == D.STUCK)] > 0).all()

@@ -71,14 +71,23 @@ def _children(pid: int) -> set[int]:
     return found
 
 
+@pytest.fixture(scope="module")
+def small_burst_dir(tmp_path_factory):
+    """A burst quick to estimate, for a signal during the write."""
+    folder = tmp_path_factory.mktemp("interrupt") / "small"
+    save_burst(simulate_burst(shape=(96, 128), n_frames=6, seed=2), folder, fmt="exr")
+    return folder
+
+
 @pytest.mark.parametrize("stage, signum, status", [("solve", signal.SIGINT, 130), ("solve", signal.SIGTERM, 143),
                                                    ("write", signal.SIGTERM, 143)])
-def test_a_signal_leaves_nothing_behind(burst_dir, tmp_path, stage, signum, status):
+def test_a_signal_leaves_nothing_behind(request, tmp_path, stage, signum, status):
     ready, out, config = tmp_path / "ready", tmp_path / "out", tmp_path / "tiles.yaml"
     # 12 tiles: the pool has work for both processes; before the write, the quickest solve
     tuned = "" if stage == "solve" else "  robust_rounds: 0\n  partners: 1\n"
     config.write_text("solver:\n  tile: 128\n" + tuned)
-    command = [sys.executable, "-c", DRIVER, stage, str(ready), "estimate", str(burst_dir), "-o", str(out),
+    burst = request.getfixturevalue("burst_dir" if stage == "solve" else "small_burst_dir")
+    command = [sys.executable, "-c", DRIVER, stage, str(ready), "estimate", str(burst), "-o", str(out),
                "--quiet", "--workers", "2", "-c", str(config)]
     proc = subprocess.Popen(command, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 120
