@@ -14,11 +14,11 @@ $(STAMP): pyproject.toml
 
 install: $(STAMP)  ## create .venv and install gainfpn with its test tools
 
-test: $(STAMP)  ## the unit suite (slow end-to-end cases excluded)
-	$(BIN)/python -m pytest -q
+test: $(STAMP)  ## the unit suite (slow end-to-end cases excluded), on 2 processes
+	$(BIN)/python -m pytest -q -n 2
 
 test-slow: $(STAMP)  ## only the slow end-to-end cases
-	$(BIN)/python -m pytest -q -m slow
+	$(BIN)/python -m pytest -q -n 2 -m slow
 
 demo: $(STAMP)  ## estimate a gain map from sample_data/exr_burst and score it against its truth
 	$(BIN)/gainfpn estimate sample_data/exr_burst -o demo_out --overwrite

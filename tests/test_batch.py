@@ -131,6 +131,7 @@ def cluster():
     client.cluster.close()
 
 
+@pytest.mark.slow  # a batch of three bursts twice; test_the_solver_runs_its_tiles_on_dask_bit_identically is the small one
 def test_a_batch_on_a_local_cluster_survives_a_killed_worker_and_matches_the_local_run(bursts, cluster, tmp_path):
     # the local run as users make it: the command (whose process keeps BLAS single-threaded, as the
     # workers do; this test process has threaded BLAS, whose sums differ in the last bit)

@@ -39,7 +39,8 @@ def _deciles(result, burst) -> list[float]:
 
 @pytest.mark.parametrize("sensor, shape, seed", [
     (dataclasses.replace(RAW12, cfa=None, fpn_pixel=0.02), (96, 128), 5),  # mono, 1 % pixel FPN
-    (RAW12, (240, 320), 5),  # RGGB (planes of 120x160), 1 % pixel FPN
+    # RGGB (planes of 120x160, the smallest whose central 256 px give the halves 10 000 pixels), 1 % pixel FPN
+    pytest.param(RAW12, (240, 320), 5, marks=pytest.mark.slow),
     pytest.param(RAW12, (240, 320), 6, marks=[pytest.mark.slow, pytest.mark.xfail(
         strict=True, reason="issue 21 gap (docs/limits.md, Confidence): 1.28-1.30 in the five lowest deciles")]),
 ])

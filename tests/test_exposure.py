@@ -96,7 +96,7 @@ def test_the_solver_refuses_exposures_that_do_not_fit():
         solve_accurate(_frames(burst), burst.homographies, exposures=[1.0, 1.0], workers=1)
 
 
-@pytest.mark.parametrize("method", ["accurate", "paper"])
+@pytest.mark.parametrize("method", ["accurate", pytest.param("paper", marks=pytest.mark.slow)])
 def test_a_burst_with_exposure_steps_is_corrected_as_one_without(method):
     # measured (accurate): 0.797 % with equal exposures; 3 % jitter 0.800 %, and 1.49 % with the
     # exposures taken as equal (input.exposure: fixed)

@@ -43,7 +43,11 @@ def _reported_worst(burst, report):
 
 
 # Seeds 5 and 6 were not used to choose TRACK_SIGMA, TRACK_QUALITY or INLIER_PX.
-@pytest.mark.parametrize("seed, shake", [(5, Shake()), (6, Shake()), (5, SHAKE4), (6, SHAKE4), (5, DRIFT), (6, DRIFT)],
+# The unit suite keeps the two bursts where the first estimate misses and the round meets it.
+@pytest.mark.parametrize("seed, shake", [pytest.param(5, Shake(), marks=pytest.mark.slow),
+                                         pytest.param(6, Shake(), marks=pytest.mark.slow), (5, SHAKE4),
+                                         pytest.param(6, SHAKE4, marks=pytest.mark.slow),
+                                         pytest.param(5, DRIFT, marks=pytest.mark.slow), (6, DRIFT)],
                          ids=["shake-5", "shake-6", "shake4px-5", "shake4px-6", "drift25px-5", "drift25px-6"])
 def test_global_warp_is_sub_pixel_accurate_despite_fpn(seed, shake):
     # issue 4: RMS trajectory error <= 0.05 px with 5 % gain FPN, asserted on
@@ -134,7 +138,7 @@ def test_no_corner_is_taken_where_told_to_ignore():
 
 
 @pytest.mark.parametrize("seed, shake", [
-    (6, DRIFT), (10, DRIFT),
+    pytest.param(6, DRIFT, marks=pytest.mark.slow), (10, DRIFT),
     pytest.param(7, DRIFT, marks=[pytest.mark.slow, pytest.mark.xfail(
         strict=True, reason="a small-frame limit (docs/limits.md): refined worst frame 0.054 px")]),
 ], ids=["drift25px-6", "drift25px-10", "drift25px-7"])
