@@ -162,9 +162,10 @@ def solve_planes(burst, frames, excluded, exposures, used: slice, in_frame, solv
             plane_halves = None if halves is None else Halves(*(pick(m) for half in halves for m in half))
             model = select_model(kp, pick(confidence), force=(models or {}).get(name) or solver.fpn_model,
                                  halves=plane_halves, calibration=(calibrations or {}).get(name),
-                                 sigma_calibrated=solver.method == "scene")
+                                 sigma_calibrated=True)
+            measured = model.sigma is not None and (model.calibration.measured or solver.method == "scene")
             report = dataclasses.replace(report, fpn_model=model.chosen, fpn_model_aic=model.scores,
-                                         input_fpn_percent=model.split, confidence_calibrated=model.sigma is not None)
+                                         input_fpn_percent=model.split, confidence_calibrated=measured)
             kp, structured, calibration = model.k, model.chosen not in ("pixel", "none"), model.calibration
             if model.sigma is not None:
                 pick(confidence)[...] = np.where(pick(confidence) > 0, confidence_from_sigma(model.sigma), 0)

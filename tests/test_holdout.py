@@ -79,7 +79,8 @@ def test_a_plane_the_check_rejects_is_written_as_k_1_and_the_others_are_kept(mon
     assert holdout.planes["G"].passed and holdout.passed and result.report.status == "accepted"
     red, green = result.k[0::2, 0::2, 0], result.k[0::2, 1::2, 0]
     assert np.all(red == 1.0) and np.all(result.confidence[0::2, 0::2, 0] == 0.0)
-    assert np.std(green) > 0.005  # a 1 % FPN plane kept its correction
+    truth = 1.0 / b.gain[0::2, 1::2]
+    assert np.corrcoef(green.ravel(), truth.ravel())[0, 1] > 0.5  # kept its correction: measured 0.63
     assert any("R@00" in w and "k = 1 (no correction) was written" in w for w in result.report.warnings)
 
 
@@ -151,12 +152,15 @@ def test_a_plane_that_learned_the_aliasing_every_pair_shares_is_not_kept(shape, 
         assert not kept or left < had, (name, left, had)
 
 
-@pytest.mark.parametrize("seed, first_ratio_below_1", [(1, True), (3, False)])
-def test_a_check_too_small_to_decide_looks_again_on_a_region_twice_as_wide(monkeypatch, seed, first_ratio_below_1):
-    # dark 12-bit 128x160 bursts whose maps help (gain FPN 2.0 -> 1.3 %, 1.4 %): on the central 48 px
-    # seed 1's check is below 1 but not by 2 standard errors (0.92 +- 0.04), on 96 px it is (0.78 +- 0.03).
-    # A first look above 1 (seed 3: 1.09 +- 0.04) is not looked at again.
-    b = simulate_burst(shape=(128, 160), n_frames=7, sensor=MONO12, exposure=0.3, scene="dead-leaves", seed=seed)
+@pytest.mark.parametrize("seed, exposure, first_ratio_below_1", [(15, 0.3, True), (3, 0.08, False)])
+def test_a_check_too_small_to_decide_looks_again_on_a_region_twice_as_wide(monkeypatch, seed, exposure,
+                                                                          first_ratio_below_1):
+    # dark 12-bit 128x160 bursts: on the central 48 px seed 15's check is below 1 but not by 2 standard
+    # errors (0.909 +- 0.049), on 96 px it is (0.788 +- 0.022). A first look above 1 (seed 3 at 8 %
+    # exposure: 1.005 +- 0.020) is not looked at again. (Of seeds 0-31 at 30 % exposure, 3 are undecided
+    # on 48 px and none reads above 1.)
+    b = simulate_burst(shape=(128, 160), n_frames=7, sensor=MONO12, exposure=exposure, scene="dead-leaves",
+                       seed=seed)
     frames = b.frames.astype(np.float32) - MONO12.black_level
     monkeypatch.setattr(solving, "CHECK_SIDE", 48)
 

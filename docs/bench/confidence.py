@@ -1,6 +1,7 @@
 """Is the written confidence honest? (docs/limits.md, "Confidence")
 
-    python docs/bench/confidence.py [SCENES [PRESETS]]   # default: moon,camera paper,raw12
+    python docs/bench/confidence.py [SCENES [PRESETS [FRAMES]]]   # default: moon,camera paper,raw12 9,16
+    python docs/bench/confidence.py fit [PARTNERS]   # the accurate solver's own sigma_k by frame count
 
 Bursts of 240x320 rendered from scikit-image's sample photographs (not a dependency of gainfpn:
 ``pip install scikit-image``), 8-bit mono (``paper``) and 12-bit RGGB (``raw12``), at 50 % and
@@ -8,6 +9,12 @@ Bursts of 240x320 rendered from scikit-image's sample photographs (not a depende
 decile of the written sigma_k, the RMS of the actual error of k over the RMS sigma_k (1 is
 honest); the MSE before over after correction on the unseen frame; the residual gain FPN and
 the reported input pixel FPN against the truth. About 15 minutes for the default.
+
+``fit``: dark procedural 240x320 bursts of the paper's sensor (7.5 % exposure, where k's error is
+the noise's) of 3, 4, 5, 6, 8 and 12 frames, solved by the accurate solver with the true motion
+and PARTNERS partner frames (default 8): k's actual error over the written sigma_k (RMS over the
+pixels 16 px or more inside), and the same without the share of the residuals the fit took
+(docs/method.md section 8, "sigma_k"), against the factor that share predicts. About 3 minutes.
 """
 
 import json
@@ -63,10 +70,40 @@ def case(scene, preset, exposure, frames, seed=7):
                 models={name: plane.fpn_model for name, plane in e.report.planes.items()})
 
 
+def fit(partners=8, seed=3):
+    """One JSON line per frame count: the accurate solver's sigma_k against k's error (see the module)."""
+    from gainfpn_cli.metrics import interior_mask
+    from gainfpn_cli.solve import accurate
+
+    options = accurate.AccurateOptions(partners=partners, robust_rounds=1 if partners < 8 else 2)
+    confidence = accurate._confidence
+    for n in (3, 4, 5, 6, 8, 12):
+        b = simulate_burst(shape=(240, 320), n_frames=n, exposure=0.075, seed=seed)
+        fr = b.frames.astype(np.float32) - b.sensor.black_level
+        row = dict(frames=n, partners=partners)
+        for name, restored in (("ratio", True), ("ratio_raw", False)):
+            accurate._confidence = lambda *a, restored=restored: confidence(*a[:5], a[5] if restored else None)
+            try:
+                r = accurate.solve_accurate(fr, b.homographies, options=options, saturation=b.saturation, workers=2)
+            finally:
+                accurate._confidence = confidence
+            use = (r.confidence > 0) & interior_mask(fr.shape[1:], 16)
+            p = (r.k * b.gain)[use]
+            err, sig = p / p.mean() - 1, sigma_from_confidence(r.confidence)[use]
+            row[name] = round(float(np.sqrt(np.mean(err**2) / np.mean(sig**2))), 3)
+        m = 1.0 / (1 + min(partners, n - 1))
+        row["predicted_raw"] = round(float(1.0 / np.sqrt((1 - m) * (1 - 1.0 / n - m))), 3)
+        print(json.dumps(row), flush=True)
+
+
 if __name__ == "__main__":
+    if len(sys.argv) > 1 and sys.argv[1] == "fit":
+        fit(int(sys.argv[2]) if len(sys.argv) > 2 else 8)
+        sys.exit()
     scenes = sys.argv[1].split(",") if len(sys.argv) > 1 else ("moon", "camera")
+    counts = [int(f) for f in sys.argv[3].split(",")] if len(sys.argv) > 3 else (9, 16)
     for scene in scenes:
         for preset in (sys.argv[2].split(",") if len(sys.argv) > 2 else ("paper", "raw12")):
             for exposure in (0.5, 0.075):
-                for frames in (9, 16):
+                for frames in counts:
                     print(json.dumps(case(scene, preset, exposure, frames)), flush=True)

@@ -110,11 +110,13 @@ class Halves:
 class Calibration:
     """What two halves measured (:func:`calibrate`): the factor that scales ``sigma_k`` to k's
     actual error, at the RMS ``sigma_k`` of each decile (between them, interpolated in
-    ``log sigma_k``; beyond them, the end ones), and the pixel FPN prior ``s^2``."""
+    ``log sigma_k``; beyond them, the end ones), and the pixel FPN prior ``s^2``. ``measured``
+    is False for the solver's ``sigma_k`` taken as it is (factor 1, the prior from the deviations)."""
 
     log_sigma: np.ndarray
     factor: np.ndarray
     prior: float
+    measured: bool = True
 
     def sigma(self, sigma: np.ndarray) -> np.ndarray:
         """``sigma_k`` (the solver's) scaled to k's actual error; inf stays inf."""
@@ -231,9 +233,10 @@ def select_model(k: np.ndarray, confidence: np.ndarray, *, force: str | None = N
     calibration : Calibration, optional
         One measured before (for another fit of the same plane), used as it is.
     sigma_calibrated : bool
-        The solver's ``sigma_k`` is already k's actual error (the scene solver's noise probe):
-        without halves or a calibration it is taken as it is (factor 1), with the prior measured
-        from the deviations.
+        The solver's ``sigma_k`` predicts k's actual error (the scene solver's noise probe, the
+        accurate solver's residuals with the share the fit took restored): without halves or a
+        calibration it is taken as it is (factor 1, ``Calibration.measured`` False), with the prior
+        measured from the deviations.
     """
     if force is not None and force not in MODELS:
         raise ValueError(f"force must be one of {', '.join(MODELS)}, got {force!r}")
@@ -250,7 +253,8 @@ def select_model(k: np.ndarray, confidence: np.ndarray, *, force: str | None = N
         fit = _Fits.of(k, sigma, est)
     deviation = np.where(est, k - fit.base, np.float32(0))
     if calibration is None and sigma_calibrated:
-        calibration = Calibration(np.zeros(1), np.ones(1), pixel_prior_variance(deviation[est], sigma[est]))
+        calibration = Calibration(np.zeros(1), np.ones(1), pixel_prior_variance(deviation[est], sigma[est]),
+                                  measured=False)
     prior = pixel_prior_variance(deviation[est], sigma[est]) if calibration is None else calibration.prior
     shrink = np.where(est, np.float32(prior) / (np.float32(prior) + sigma**2), np.float32(0))
     scores = {**fit.scores, "pixel": 2.0 * max(int(est.sum()) - 1, 0)}  # every pixel's own k fits exactly
