@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from gainfpn_cli import api
+from gainfpn_cli.metrics import confidence_deciles, interior_mask
 from gainfpn_cli.sim.sensor import PRESETS
 from gainfpn_cli.sim.simulate import simulate_burst
 from gainfpn_cli.solve.result import sigma_from_confidence
@@ -27,14 +28,8 @@ def _estimate(sensor, n_frames, **kwargs):
 def _deciles(result, burst) -> list[float]:
     """Per decile of the written sigma_k: RMS actual error of k over RMS sigma_k."""
     k, confidence = result.k[..., 0], result.confidence[..., 0]
-    use = np.zeros(k.shape, bool)
-    use[MARGIN:-MARGIN, MARGIN:-MARGIN] = True
-    use &= confidence > 0
-    corrected = k * burst.gain
-    error = (corrected / corrected[use].mean() - 1)[use]
-    sigma = sigma_from_confidence(confidence)[use]
-    return [float(np.sqrt(np.mean(error[part] ** 2) / np.mean(sigma[part] ** 2)))
-            for part in np.array_split(np.argsort(sigma), 10)]
+    use = interior_mask(k.shape, MARGIN) & (confidence > 0)
+    return confidence_deciles(k, burst.gain, sigma_from_confidence(confidence), use)
 
 
 @pytest.mark.parametrize("sensor, shape, seed", [

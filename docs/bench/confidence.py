@@ -88,9 +88,7 @@ def fit(partners=8, seed=3):
             finally:
                 accurate._confidence = confidence
             use = (r.confidence > 0) & interior_mask(fr.shape[1:], 16)
-            p = (r.k * b.gain)[use]
-            err, sig = p / p.mean() - 1, sigma_from_confidence(r.confidence)[use]
-            row[name] = round(float(np.sqrt(np.mean(err**2) / np.mean(sig**2))), 3)
+            row[name] = round(confidence_deciles(r.k, b.gain, sigma_from_confidence(r.confidence), use, parts=1)[0], 3)
         m = 1.0 / (1 + min(partners, n - 1))
         row["predicted_raw"] = round(float(1.0 / np.sqrt((1 - m) * (1 - 1.0 / n - m))), 3)
         print(json.dumps(row), flush=True)
