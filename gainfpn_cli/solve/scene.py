@@ -54,8 +54,9 @@ class SceneOptions:
         Weight of the squared gradient of ``S`` (in scene samples), relative to one reading of
         median noise weight.
     gain_prior : float
-        Standard deviation of the prior ``a ~ N(1, gain_prior)``; far wider than any sensor's
-        pixel FPN, so it only pins what the data cannot (the low band, unseen pixels).
+        Standard deviation of the prior ``a ~ N(1, gain_prior)``: it pins what the data cannot
+        (the low band, unseen pixels, the modes in which ``a`` and ``S`` trade); its pull on each
+        pixel's own ``a`` is taken back after the fit, as the FPN model shrinks k itself.
     steps : int
         Gauss-Newton steps (the first with uniform weights, then with the fitted noise model).
     cg_iterations : int
@@ -82,9 +83,7 @@ class SceneOptions:
     scale: int = 2
     aperture: float = 1.0
     smoothness: float = 1e-4
-    # 50 %: at 5 % (the paper sensor's own FPN) the prior shrank measured gains towards 1 (by 0.75 in
-    # the darkest tenth of a dark 8-bit burst) and the FPN model's shrinkage came on top (docs/method.md)
-    gain_prior: float = 0.5
+    gain_prior: float = 0.05
     steps: int = 2
     cg_iterations: int = 20
     cg_rtol: float = 1e-4
@@ -272,6 +271,12 @@ def _solve_tile(tile: Tile) -> tuple[np.ndarray, np.ndarray, int]:
         a += da
         iterations += its
         step += 1
+    # the prior pulls each a towards 1 by the information of its readings over that plus the prior's;
+    # the FPN model shrinks k by its sigma_k, so the pull is taken back here (docs/method.md 8b)
+    information = (weight * predicted**2).reshape(n_frames, -1).sum(axis=0)
+    unpull = np.divide(information + 1.0 / opt.gain_prior**2, information, out=np.ones_like(information),
+                       where=information > 0)
+    a = 1.0 + (a - 1.0) * unpull
     k = 1.0 / np.where(est & (a > 0), a, 1.0).reshape(h, w)
     est = est.reshape(h, w) & (a.reshape(h, w) > 0)
     k = k / low_pass(k, opt.gauge_sigma, est)  # the gauge: low band exactly 1
@@ -283,6 +288,7 @@ def _solve_tile(tile: Tile) -> tuple[np.ndarray, np.ndarray, int]:
     ds, da, its = _gauss_newton_step(A, gram, weight, probe, predicted, a, s, opt, priors=False)
     iterations += its
     fitted = probe - np.tile(a, n_frames) * A.forward(ds) - predicted * np.tile(da, n_frames)
+    da = da * unpull
     confidence = _confidence(residual, fitted, probe, da, variance, weight, a, est, n_frames)
     return k.astype(np.float32), confidence.astype(np.float32), iterations
 
