@@ -273,7 +273,7 @@ def _solve_tile(tile: Tile) -> tuple[np.ndarray, np.ndarray, int]:
         step += 1
     # the prior pulls each a towards 1 by the information of its readings over that plus the prior's;
     # the FPN model shrinks k by its sigma_k, so the pull is taken back here (docs/method.md 8b)
-    information = (weight * predicted**2).reshape(n_frames, -1).sum(axis=0)
+    information = _gain_information(weight, predicted, a.size)
     unpull = np.divide(information + 1.0 / opt.gain_prior**2, information, out=np.ones_like(information),
                        where=information > 0)
     a = 1.0 + (a - 1.0) * unpull
@@ -313,6 +313,12 @@ def _moved(points, moves, exposure, gains, frames, good, fine, opt: SceneOptions
 PROBE_SEED = 20261124
 
 
+def _gain_information(weight, predicted, n: int) -> np.ndarray:
+    """Each of the ``n`` pixels' information on its own ``a`` from its readings (the scene taken as
+    known): ``sum_t w P^2`` over the frames."""
+    return (weight * predicted**2).reshape(-1, n).sum(axis=0)
+
+
 def _gauss_newton_step(A: "_Sampling", gram, weight, residual, predicted, a, s, opt: SceneOptions, *,
                        priors: bool = True):
     """One Gauss-Newton step ``(ds, da)`` of the weighted squares plus priors, ``a`` eliminated, and
@@ -326,7 +332,7 @@ def _gauss_newton_step(A: "_Sampling", gram, weight, residual, predicted, a, s, 
     wr = weight * residual
     grad_s = A.back(at * wr) - (lam * (gram @ s) if priors else 0.0)
     grad_a = (predicted * wr).reshape(repeat, n).sum(axis=0) - (prior * (a - 1.0) if priors else 0.0)
-    h_aa = (weight * predicted**2).reshape(repeat, n).sum(axis=0) + prior
+    h_aa = _gain_information(weight, predicted, n) + prior
     coupling = weight * at * predicted  # rows of H_sa = A^T diag(w a P), per reading
     data_ss = weight * at**2
 
