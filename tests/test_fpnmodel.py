@@ -5,7 +5,8 @@ from gainfpn_cli import metrics
 from gainfpn_cli.sim.sensor import PRESETS, with_overrides
 from gainfpn_cli.sim.simulate import simulate_burst
 from gainfpn_cli.solve.accurate import solve_accurate
-from gainfpn_cli.solve.fpnmodel import MODELS, Halves, calibrate, pixel_prior_variance, select_model, structured_parts
+from gainfpn_cli.solve.fpnmodel import (MODELS, Halves, calibrate, departure, pixel_prior_variance, select_model,
+                                       structured_parts)
 from gainfpn_cli.solve.result import sigma_from_confidence
 
 SIGMA = 0.005  # standard error of every synthetic k
@@ -177,3 +178,22 @@ def test_the_pixel_model_shrinks_by_the_measured_error():
     error = measured.k - truth
     assert np.sqrt(np.mean(error**2)) / np.sqrt(np.mean(measured.sigma**2)) == pytest.approx(1.0, abs=0.1)
     assert np.std(measured.k - truth) < np.std(plain.k - truth)
+
+
+def test_an_error_the_full_fit_has_and_neither_half_does_is_counted():
+    # a smooth 10 % dip in the full fit only (as comparisons of near frames left one at a frame edge of a
+    # raw12 bench burst): the halves' Hausman difference reads it as less error, the departure from the
+    # halves' mean as what it is, and the pixel model then shrinks it away
+    truth, k, confidence, halves = _halves(np.random.default_rng(5), pixel=0.01, factor=1.0)
+    y, x = np.mgrid[: k.shape[0], : k.shape[1]]
+    dip = -0.1 * np.exp(-((y - 80) ** 2 + (x - 30) ** 2) / (2 * 5.0**2))
+    strayed = departure(k + dip, halves, confidence > 0)
+    assert np.mean(strayed[np.abs(dip) > 0.03] > 0) > 0.95
+    assert np.mean(strayed[np.abs(dip) < 1e-4] > 0) < 1e-3
+    assert np.sqrt(strayed[80, 30]) == pytest.approx(0.1, rel=0.2)
+    model = select_model(k + dip, confidence, halves=halves)
+    assert model.chosen == "pixel"
+    inside = np.abs(dip) > 0.03
+    assert np.sqrt(np.mean((model.k - truth)[inside] ** 2)) < 0.3 * np.sqrt(np.mean(dip[inside] ** 2))
+    deciles = metrics.confidence_deciles(model.k, 1 / truth, model.sigma, confidence > 0)
+    assert 0.75 <= min(deciles) and max(deciles) <= 1.25, deciles

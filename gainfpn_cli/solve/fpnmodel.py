@@ -47,7 +47,9 @@ independent, so ``s^2`` is the covariance of their deviations (noise does not
 enter it), and the full fit's error variance in each decile of ``sigma_k`` is
 ``-mean((k_a - k)(k_b - k))`` (a Hausman-type difference: exact when k is the
 halves' average, and needing no truth); ``sigma_k`` is scaled by the measured
-factor. What it cannot see is an error the two halves share (interpolating a
+factor. Where the full fit strays from the halves' mean by more than their spread allows
+(:func:`departure`), that error is added to ``sigma_k`` and those pixels are left out of the
+deciles' measurement. What it cannot see is an error the two halves share (interpolating a
 sharp scene); the measured calibration is in docs/limits.md ("Confidence").
 """
 
@@ -132,6 +134,37 @@ MIN_SPLIT_PIXELS = 10_000
 #: Smallest factor :func:`calibrate` gives ``sigma_k``: a decile whose measured error variance is
 #: 0 or below (a chance of its own noise) must not make k certain.
 MIN_FACTOR = 0.1
+
+
+#: Side (px) of the window :func:`departure` compares the full fit with the halves' mean over.
+DEPARTURE_WINDOW = 5
+#: How far (in variance) the full fit must stray from the halves' mean, over the spread the halves
+#: give that mean, before :func:`departure` counts it: under a consistent fit the ratio's expectation
+#: is at most 1, and a 5x5 window of errors correlated over a few pixels has few degrees of freedom.
+DEPARTURE_RATIO = 4.0
+
+
+def departure(k: np.ndarray, halves: Halves, est: np.ndarray) -> np.ndarray:
+    """The variance of an error the full fit ``k`` has and neither half does: the local mean square
+    of ``k - (k_a + k_b) / 2`` beyond the halves' own spread ``((k_a - k_b) / 2)^2`` where it is more
+    than :data:`DEPARTURE_RATIO` times that spread, else 0 (and 0 where a half has no estimate).
+
+    The full fit is the halves' average plus what their cross comparisons add, so it strays from
+    that average by no more than the average's own error; a mode it pins down worse than either
+    half (a frame edge that trajectories leave, comparisons of near frames only) strays further,
+    and the halves' Hausman difference (:func:`calibrate`) reads that as a smaller error, not a
+    larger one."""
+    import cv2
+
+    both = est & (halves.confidence_a > 0) & (halves.confidence_b > 0)
+    k_a, k_b = (np.asarray(m, np.float64) for m in (halves.k_a, halves.k_b))
+    stray = np.where(both, (np.asarray(k, np.float64) - (k_a + k_b) / 2) ** 2, 0.0)
+    spread = np.where(both, ((k_a - k_b) / 2) ** 2, 0.0)
+    box = lambda a: cv2.boxFilter(a, -1, (DEPARTURE_WINDOW,) * 2, normalize=False,  # noqa: E731
+                                  borderType=cv2.BORDER_REFLECT)
+    count = box(both.astype(np.float64))
+    stray, spread = (np.divide(box(m), count, out=np.zeros_like(m), where=count > 0) for m in (stray, spread))
+    return np.where(both & (stray > DEPARTURE_RATIO * spread), stray - spread, 0.0).astype(np.float32)
 
 
 def calibrate(k: np.ndarray, sigma: np.ndarray, halves: Halves, base: np.ndarray,
@@ -246,10 +279,13 @@ def select_model(k: np.ndarray, confidence: np.ndarray, *, force: str | None = N
     est = confidence > 0
     sigma = np.maximum(sigma_from_confidence(confidence), 1e-6).astype(np.float32)
     fit = _Fits.of(k, sigma, est)
+    strayed = None if halves is None else departure(k, halves, est)
     if halves is not None and calibration is None:  # measured about the solver's own sigma_k's base
-        calibration = calibrate(k, sigma, halves, fit.base, est)
+        calibration = calibrate(k, sigma, halves, fit.base, est if strayed is None else est & (strayed == 0))
     if calibration is not None:
         sigma = calibration.sigma(sigma)
+        if strayed is not None:
+            sigma = np.sqrt(sigma**2 + strayed)
         fit = _Fits.of(k, sigma, est)
     deviation = np.where(est, k - fit.base, np.float32(0))
     if calibration is None and sigma_calibrated:
