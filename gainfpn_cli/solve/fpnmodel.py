@@ -157,14 +157,15 @@ def departure(k: np.ndarray, halves: Halves, est: np.ndarray) -> np.ndarray:
     import cv2
 
     both = est & (halves.confidence_a > 0) & (halves.confidence_b > 0)
-    k_a, k_b = (np.asarray(m, np.float64) for m in (halves.k_a, halves.k_b))
-    stray = np.where(both, (np.asarray(k, np.float64) - (k_a + k_b) / 2) ** 2, 0.0)
-    spread = np.where(both, ((k_a - k_b) / 2) ** 2, 0.0)
+    k_a, k_b = (np.asarray(m, np.float32) for m in (halves.k_a, halves.k_b))  # plane-sized: float32
+    zero = np.float32(0)
+    stray = np.where(both, (np.asarray(k, np.float32) - (k_a + k_b) / 2) ** 2, zero)
+    spread = np.where(both, ((k_a - k_b) / 2) ** 2, zero)
     box = lambda a: cv2.boxFilter(a, -1, (DEPARTURE_WINDOW,) * 2, normalize=False,  # noqa: E731
                                   borderType=cv2.BORDER_REFLECT)
-    count = box(both.astype(np.float64))
+    count = box(both.astype(np.float32))
     stray, spread = (np.divide(box(m), count, out=np.zeros_like(m), where=count > 0) for m in (stray, spread))
-    return np.where(both & (stray > DEPARTURE_RATIO * spread), stray - spread, 0.0).astype(np.float32)
+    return np.where(both & (stray > DEPARTURE_RATIO * spread), stray - spread, zero)
 
 
 def calibrate(k: np.ndarray, sigma: np.ndarray, halves: Halves, base: np.ndarray,
