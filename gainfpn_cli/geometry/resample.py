@@ -92,6 +92,14 @@ def valid_samples(good: np.ndarray, M: np.ndarray, shape: tuple[int, int], *, ke
     return _resample(ok, M, shape, cv2.INTER_NEAREST, cv2.BORDER_CONSTANT) > 0
 
 
+def window_sum(image: np.ndarray, side: int) -> np.ndarray:
+    """The sum over the ``side`` x ``side`` window around each pixel (edges mirrored), in the
+    image's own dtype."""
+    import cv2
+
+    return cv2.boxFilter(image, -1, (side, side), normalize=False, borderType=cv2.BORDER_REFLECT)
+
+
 def low_pass(image: np.ndarray, sigma: float, mask: np.ndarray | None = None) -> np.ndarray:
     """Gaussian low-pass; with ``mask``, normalised so masked-out pixels do not count."""
     import cv2

@@ -36,7 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import EstimationError
-from ..geometry.resample import KERNELS, bounded, low_pass, sample, valid_samples
+from ..geometry.resample import KERNELS, bounded, low_pass, sample, valid_samples, window_sum
 from ..metrics import MAD_TO_SIGMA
 from .phase import phase_weighted
 from .result import AccurateStats, GainResult, confidence_from_sigma
@@ -328,8 +328,6 @@ def _confidence(residuals, weights, valid, information, est, fractions=None) -> 
     gives what they predict against k's measured error). Without ``fractions`` (only the reference
     anchors) both are 1.
     """
-    import cv2
-
     shape = information.shape
     squares = np.zeros(shape)
     counts = np.zeros(shape)
@@ -337,7 +335,7 @@ def _confidence(residuals, weights, valid, information, est, fractions=None) -> 
         use = v & est
         squares += np.where(use, wt * r**2, 0.0)
         counts += np.where(use, wt, 0.0)
-    box = lambda a: cv2.boxFilter(a, -1, (5, 5), normalize=False, borderType=cv2.BORDER_REFLECT)  # noqa: E731
+    box = lambda a: window_sum(a, 5)  # noqa: E731
     boxed = box(counts)
     local = np.divide(box(squares), boxed, out=np.full(shape, np.inf), where=boxed > 0)
     kept = 1.0

@@ -44,7 +44,7 @@ import warnings
 
 import numpy as np
 
-from ..geometry.resample import sample, valid_samples
+from ..geometry.resample import sample, valid_samples, window_sum
 from ..metrics import MAD_TO_SIGMA
 
 #: Codes of the ``defect`` channel of ``gain_map.exr``: 0 is a healthy photosite.
@@ -397,8 +397,6 @@ def repair(plane: np.ndarray, defective: np.ndarray) -> np.ndarray:
     """``plane`` ``(H, W)`` with every ``defective`` photosite replaced by the mean of its healthy
     neighbours in the plane (the nearest ring that has any); float32. Photosites with no healthy
     neighbour within :data:`REPAIR_ROUNDS` rings keep their value."""
-    import cv2
-
     image = np.array(plane, np.float32)
     if not defective.any():
         return image
@@ -406,9 +404,8 @@ def repair(plane: np.ndarray, defective: np.ndarray) -> np.ndarray:
     known = (~defective).astype(np.float32)
     todo = defective.copy()
     for radius in range(1, REPAIR_ROUNDS + 1):
-        size = (2 * radius + 1, 2 * radius + 1)
-        total = cv2.boxFilter(image * known, -1, size, normalize=False, borderType=cv2.BORDER_REFLECT)
-        count = cv2.boxFilter(known, -1, size, normalize=False, borderType=cv2.BORDER_REFLECT)
+        total = window_sum(image * known, 2 * radius + 1)
+        count = window_sum(known, 2 * radius + 1)
         fill = todo & (count > 0.5)
         image[fill] = total[fill] / count[fill]
         todo &= ~fill

@@ -59,6 +59,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..geometry.resample import window_sum
 from ..metrics import robust_spread
 from . import FPN_MODELS
 from .result import regauge, sigma_from_confidence
@@ -154,17 +155,14 @@ def departure(k: np.ndarray, halves: Halves, est: np.ndarray) -> np.ndarray:
     half (a frame edge that trajectories leave, comparisons of near frames only) strays further,
     and the halves' Hausman difference (:func:`calibrate`) reads that as a smaller error, not a
     larger one."""
-    import cv2
-
     both = est & (halves.confidence_a > 0) & (halves.confidence_b > 0)
     k_a, k_b = (np.asarray(m, np.float32) for m in (halves.k_a, halves.k_b))  # plane-sized: float32
     zero = np.float32(0)
     stray = np.where(both, (np.asarray(k, np.float32) - (k_a + k_b) / 2) ** 2, zero)
     spread = np.where(both, ((k_a - k_b) / 2) ** 2, zero)
-    box = lambda a: cv2.boxFilter(a, -1, (DEPARTURE_WINDOW,) * 2, normalize=False,  # noqa: E731
-                                  borderType=cv2.BORDER_REFLECT)
-    count = box(both.astype(np.float32))
-    stray, spread = (np.divide(box(m), count, out=np.zeros_like(m), where=count > 0) for m in (stray, spread))
+    count = window_sum(both.astype(np.float32), DEPARTURE_WINDOW)
+    stray, spread = (np.divide(window_sum(m, DEPARTURE_WINDOW), count, out=np.zeros_like(m), where=count > 0)
+                     for m in (stray, spread))
     return np.where(both & (stray > DEPARTURE_RATIO * spread), stray - spread, zero)
 
 
@@ -282,7 +280,7 @@ def select_model(k: np.ndarray, confidence: np.ndarray, *, force: str | None = N
     fit = _Fits.of(k, sigma, est)
     strayed = None if halves is None else departure(k, halves, est)
     if halves is not None and calibration is None:  # measured about the solver's own sigma_k's base
-        calibration = calibrate(k, sigma, halves, fit.base, est if strayed is None else est & (strayed == 0))
+        calibration = calibrate(k, sigma, halves, fit.base, est & (strayed == 0))
     if calibration is not None:
         sigma = calibration.sigma(sigma)
         if strayed is not None:

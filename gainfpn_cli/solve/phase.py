@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..geometry.resample import positions
+from ..geometry.resample import positions, window_sum
 
 #: Side (px) of the window over which the interpolation error's growth with the phase is fitted.
 PHASE_WINDOW = 9
@@ -28,10 +28,7 @@ def phase_weighted(weights, residuals, valid, pair_maps, shape) -> list[np.ndarr
     of all comparisons in a window around each pixel; ``u`` is the median of
     ``a``, so that a comparison as good as the noise keeps its weight.
     """
-    import cv2
-
-    box = lambda a: cv2.boxFilter(a, -1, (PHASE_WINDOW, PHASE_WINDOW), normalize=False,  # noqa: E731
-                                  borderType=cv2.BORDER_REFLECT)
+    box = lambda a: window_sum(a, PHASE_WINDOW)  # noqa: E731
     moments = np.zeros((5,) + shape)  # sums of 1, p, p^2, r^2, r^2 p over valid comparisons
     for r, v, (_, _, M) in zip(residuals, valid, pair_maps):
         p = np.where(v, sample_phase(M, shape), 0.0)

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..geometry.resample import low_pass, positions
+from ..geometry.resample import low_pass, positions, window_sum
 from .frames import refine_frames
 from .result import GainResult, SceneStats, confidence_from_sigma
 from .tiling import Tile, blend, checked_problem, solve_tiles, tiles_of
@@ -399,8 +399,6 @@ def _confidence(residual, fitted, probe, da, variance, weight, a, est, n_frames)
     it is scaled by the window's residual variance over what the model predicts for the residuals
     (the probe's, which the fit shrinks by the same leverage as the data's), so pixels by features
     the model cannot explain, or readings noisier than the model, report their larger error."""
-    import cv2
-
     shape = est.shape
     n = est.size
     use = (weight > 0).reshape(n_frames, n)
@@ -408,14 +406,11 @@ def _confidence(residual, fitted, probe, da, variance, weight, a, est, n_frames)
     def per_pixel(values):
         return np.where(use, values.reshape(n_frames, n), 0.0).sum(axis=0).reshape(shape)
 
-    def box(x, side):
-        return cv2.boxFilter(x, -1, (side, side), normalize=False, borderType=cv2.BORDER_REFLECT)
-
-    actual = box(per_pixel(residual**2 / variance), 5)
-    expected = box(per_pixel(fitted**2 / variance), 5)
+    actual = window_sum(per_pixel(residual**2 / variance), 5)
+    expected = window_sum(per_pixel(fitted**2 / variance), 5)
     excess = np.divide(actual, expected, out=np.ones(shape), where=expected > 0)
     moved = np.where(est, da.reshape(shape) ** 2, 0.0)
-    variance_a = np.divide(box(moved, 9), box(est.astype(np.float64), 9), out=np.full(shape, np.inf),
+    variance_a = np.divide(window_sum(moved, 9), window_sum(est.astype(np.float64), 9), out=np.full(shape, np.inf),
                            where=est) * excess
     sigma_k = np.sqrt(variance_a) / np.maximum(a.reshape(shape), 1e-3) ** 2
     return np.where(est, confidence_from_sigma(sigma_k), 0.0)
