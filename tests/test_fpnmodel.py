@@ -197,3 +197,22 @@ def test_an_error_the_full_fit_has_and_neither_half_does_is_counted():
     assert np.sqrt(np.mean((model.k - truth)[inside] ** 2)) < 0.3 * np.sqrt(np.mean(dip[inside] ** 2))
     deciles = metrics.confidence_deciles(model.k, 1 / truth, model.sigma, confidence > 0)
     assert 0.75 <= min(deciles) and max(deciles) <= 1.25, deciles
+
+
+def test_an_error_both_halves_share_is_counted_and_not_taken_for_pixel_fpn():
+    # interpolating a sharp scene errs alike in every fit: both halves share that error, so their
+    # Hausman difference misses it and their covariance takes it for pixel FPN. Here it is 3x sigma_k
+    # on the sharper half of the map (where sigma_k is larger, as at a scene's edges)
+    rng = np.random.default_rng(6)
+    truth, k, confidence, halves = _halves(rng, pixel=0.01, factor=1.0)
+    sigma = sigma_from_confidence(confidence)
+    shared = np.where(sigma > np.median(sigma), 3.0 * sigma * rng.standard_normal(k.shape), 0.0)
+    halves = Halves(halves.k_a + shared, halves.confidence_a, halves.k_b + shared, halves.confidence_b)
+    calibration = calibrate(k + shared, sigma, halves, np.ones(k.shape), confidence > 0)
+    assert np.sqrt(calibration.prior) == pytest.approx(0.01, rel=0.05)
+    # k's error over sigma_k in each decile of sigma_k: 1 in the lower five, sqrt(1 + 3^2) above
+    np.testing.assert_allclose(calibration.factor, [1.0] * 5 + [np.sqrt(10.0)] * 5, rtol=0.1)
+    model = select_model(k + shared, confidence, halves=halves)
+    deciles = metrics.confidence_deciles(model.k, 1 / truth, model.sigma, confidence > 0)
+    assert 0.75 <= min(deciles) and max(deciles) <= 1.25, deciles
+    assert np.std(model.k - truth) < 0.8 * np.std(truth)
