@@ -216,3 +216,18 @@ def test_an_error_both_halves_share_is_counted_and_not_taken_for_pixel_fpn():
     deciles = metrics.confidence_deciles(model.k, 1 / truth, model.sigma, confidence > 0)
     assert 0.75 <= min(deciles) and max(deciles) <= 1.25, deciles
     assert np.std(model.k - truth) < 0.8 * np.std(truth)
+
+
+def test_the_pixel_fpn_is_not_sliced_by_its_own_sigma():
+    # a pixel's sigma_k falls with its own gain (its readings' information): on a flat scene the
+    # deciles of its own sigma_k are deciles of the FPN itself, each far narrower than the whole
+    rng = np.random.default_rng(7)
+    shape = (160, 200)
+    truth = 1 + 0.05 * rng.standard_normal(shape)
+    sigma = 0.01 * truth * np.geomspace(1.0, 1.2, shape[1])[None, :]
+    e_a, e_b = (np.sqrt(2) * sigma * rng.standard_normal(shape) for _ in range(2))
+    ones = np.ones(shape)
+    halves = Halves(truth + e_a, ones, truth + e_b, ones)
+    calibration = calibrate(truth + (e_a + e_b) / 2, sigma, halves, ones, ones > 0)
+    assert np.sqrt(calibration.prior) == pytest.approx(0.05, rel=0.03)
+    np.testing.assert_allclose(calibration.factor, 1.0, rtol=0.1)
