@@ -50,7 +50,7 @@ halves' average, and needing no truth); ``sigma_k`` is scaled by the measured
 factor. An error the halves share (interpolating a sharp scene) enters neither the Hausman
 difference nor the noise, but the covariance; the pixel FPN does not know the scene, so ``s^2``
 is pooled from the deciles that agree with the most precise (:func:`_prior`), and what the
-deviations' mean square holds beyond ``s^2`` and the Hausman difference is counted as error.
+deviations' variance holds beyond ``s^2`` and the Hausman difference is counted as error.
 Where the full fit strays from the halves' mean by more than their spread allows
 (:func:`departure`), that error is added to ``sigma_k`` and those pixels are left out of the
 deciles' measurement. The measured calibration is in docs/limits.md ("Confidence").
@@ -138,8 +138,8 @@ LOCAL_WINDOW = 5
 
 
 def local_sigma2(sigma: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """The mean ``sigma_k^2`` over the :data:`LOCAL_WINDOW` window's ``mask`` pixels (the pixel's own where
-    it has none). A pixel's own sigma_k falls with its own gain (its readings' information), so its
+    """The mean ``sigma_k^2`` over the :data:`LOCAL_WINDOW` window's ``mask`` pixels (0 where there are
+    none). A pixel's own sigma_k falls with its own gain (its readings' information), so its
     deciles would slice the pixel FPN itself where the scene is flat; the window's mean follows the scene.
     (k's error does follow a pixel's own sigma_k: the calibration's deciles are by that.)"""
     square = np.where(mask, np.asarray(sigma, np.float32), np.float32(0)) ** 2
@@ -160,7 +160,8 @@ MIN_FACTOR = 0.1
 #: Measured on synthetic halves (30 seeds, decile factors against the truth): with no shared error, 4 %
 #: RMS (a hard cut at 3 standard errors: 1 %, full weight: 6.5 %); on a 9-frame camera RGGB burst, whose
 #: shared error stands 2-5 standard errors out, the four planes' residual 1.09 % (a hard cut: 1.17 %,
-#: without this term 1.19 %; true FPN 1.0 %).
+#: without this term 1.19 %; true FPN 1.0 %; measured with the FPN pooled over deciles of the pixel's own
+#: sigma_k, which gave the chosen weight's 1.09 % as the window's does).
 SHARED_T2 = 4.0
 #: A decile's covariance of the halves' deviations above the pooled pixel FPN variance by more than
 #: this many standard errors holds an error the halves share, and is left out of the FPN (:func:`_prior`).
