@@ -142,9 +142,15 @@ def local_sigma2(sigma: np.ndarray, mask: np.ndarray) -> np.ndarray:
     none). A pixel's own sigma_k falls with its own gain (its readings' information), so its
     deciles would slice the pixel FPN itself where the scene is flat; the window's mean follows the scene.
     (k's error does follow a pixel's own sigma_k: the calibration's deciles are by that.)"""
-    square = np.where(mask, np.asarray(sigma, np.float32), np.float32(0)) ** 2
-    count = window_sum(mask.astype(np.float32), LOCAL_WINDOW)
-    return np.where(count > 0, window_sum(square, LOCAL_WINDOW) / np.maximum(count, np.float32(1)), square)
+    return _window_mean(np.asarray(sigma, np.float32) ** 2, mask, LOCAL_WINDOW)
+
+
+def _window_mean(values: np.ndarray, mask: np.ndarray, side: int) -> np.ndarray:
+    """The mean of float32 ``values`` over the ``mask`` pixels of the ``side`` x ``side`` window around
+    each pixel; 0 where the window has none."""
+    count = window_sum(mask.astype(np.float32), side)
+    total = window_sum(np.where(mask, values, np.float32(0)), side)
+    return np.divide(total, count, out=np.zeros_like(total), where=count > 0)
 
 
 #: Fewest pixels both halves and the full fit estimated for :func:`calibrate` to measure anything:
@@ -188,13 +194,9 @@ def departure(k: np.ndarray, halves: Halves, est: np.ndarray) -> np.ndarray:
     larger one."""
     both = est & (halves.confidence_a > 0) & (halves.confidence_b > 0)
     k_a, k_b = (np.asarray(m, np.float32) for m in (halves.k_a, halves.k_b))  # plane-sized: float32
-    zero = np.float32(0)
-    stray = np.where(both, (np.asarray(k, np.float32) - (k_a + k_b) / 2) ** 2, zero)
-    spread = np.where(both, ((k_a - k_b) / 2) ** 2, zero)
-    count = window_sum(both.astype(np.float32), DEPARTURE_WINDOW)
-    stray, spread = (np.divide(window_sum(m, DEPARTURE_WINDOW), count, out=np.zeros_like(m), where=count > 0)
-                     for m in (stray, spread))
-    return np.where(both & (stray > DEPARTURE_RATIO * spread), stray - spread, zero)
+    stray = _window_mean((np.asarray(k, np.float32) - (k_a + k_b) / 2) ** 2, both, DEPARTURE_WINDOW)
+    spread = _window_mean(((k_a - k_b) / 2) ** 2, both, DEPARTURE_WINDOW)
+    return np.where(both & (stray > DEPARTURE_RATIO * spread), stray - spread, np.float32(0))
 
 
 def calibrate(k: np.ndarray, sigma: np.ndarray, halves: Halves, base: np.ndarray,
