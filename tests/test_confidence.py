@@ -11,6 +11,7 @@ from gainfpn_cli import api
 from gainfpn_cli.metrics import confidence_deciles, interior_mask
 from gainfpn_cli.sim.sensor import PRESETS
 from gainfpn_cli.sim.simulate import simulate_burst
+from gainfpn_cli.solve.fpnmodel import COLUMN_Z
 from gainfpn_cli.solve.result import sigma_from_confidence
 
 RAW12 = PRESETS["raw12"]
@@ -44,6 +45,7 @@ def test_the_written_confidence_is_the_error_k_has(sensor, shape, seed):
     # solver's own sigma_k: 0.45-1.11 (mono) and 0.28-1.12 (RGGB) over the deciles of such bursts
     result, burst = _estimate(sensor, 9, shape=shape, exposure=0.075, scene="procedural", seed=seed)
     assert all(p.confidence_calibrated for p in result.report.planes.values())
+    assert all(p.column_agreement < COLUMN_Z and p.fpn_model == "pixel" for p in result.report.planes.values())
     ratios = _deciles(result, burst)
     assert all(0.75 <= r <= 1.25 for r in ratios), ratios
     # the input pixel FPN, noise not taken for FPN: measured 1.99 % for 2 % (mono) and 1.15 % for 1 %
