@@ -193,7 +193,8 @@ class PlaneReport:
     FPN split into EMVA 1288's parts (percent), whether the confidence was calibrated on two
     halves of the frames (:func:`solve.fpnmodel.calibrate`) and how far the column gains of the
     plane's top and bottom agree (standard errors; the column models are candidates from
-    :data:`solve.fpnmodel.COLUMN_Z` on, None where too few columns tell)."""
+    :data:`solve.fpnmodel.COLUMN_Z` on; None where that gate is not applied: k's error not measured
+    on halves, or too few columns)."""
 
     method: str
     solved_on: str

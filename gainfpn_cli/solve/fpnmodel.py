@@ -29,8 +29,9 @@ estimates the prediction error on held-out data (it is asymptotically
 leave-one-out cross-validation, Stone 1977), which is what matters when the
 map corrects other captures. AIC counts the pixels as independent, so an error that runs along
 part of a column (interpolating a vertical edge) fits a column model as well as column FPN does;
-a column model is a candidate only where column gains fitted on the top and bottom halves of the
-plane apart agree (:func:`column_agreement`), as a sensor's column FPN does and an edge's does not.
+where k's error is measured (halves, below) a column model is a candidate only if column gains
+fitted on the top and bottom halves of the plane apart agree (:func:`column_agreement`), as a
+sensor's column FPN does and an edge's does not.
 
 Once chosen, the pixel model does not take each pixel's k as it is: a pixel
 whose k is uncertain would carry its whole estimation error into the
@@ -96,8 +97,8 @@ class FPNModel:
         pixel model, as it is under a structured one (an upper bound there).
     column_agreement : float
         How far column gains fitted on the top and bottom halves apart agree, in standard errors
-        (:func:`column_agreement`): the column models are candidates at :data:`COLUMN_Z` or more
-        (NaN, too few columns to tell: always).
+        (:func:`column_agreement`): the column models are candidates at :data:`COLUMN_Z` or more.
+        NaN where the gate is not applied (k's error not measured on halves; too few columns).
     """
 
     k: np.ndarray
@@ -348,7 +349,8 @@ def select_model(k: np.ndarray, confidence: np.ndarray, *, force: str | None = N
     confidence = np.asarray(confidence, np.float32)
     est = confidence > 0
     sigma = np.maximum(sigma_from_confidence(confidence), 1e-6).astype(np.float32)
-    fit = _Fits.of(k, sigma, est)
+    # the column models' gate only where k's error is measured (see COLUMN_Z)
+    fit = _Fits.of(k, sigma, est, gate=halves is not None or (calibration is not None and calibration.measured))
     strayed = None if halves is None else departure(k, halves, est)
     if halves is not None and calibration is None:  # measured about the solver's own sigma_k's base
         calibration = calibrate(k, sigma, halves, fit.base, est & (strayed == 0))
@@ -356,7 +358,9 @@ def select_model(k: np.ndarray, confidence: np.ndarray, *, force: str | None = N
         sigma = calibration.sigma(sigma)
         if strayed is not None:
             sigma = np.sqrt(sigma**2 + strayed)
-        fit = _Fits.of(k, sigma, est)
+        fit = _Fits.of(k, sigma, est, gate=calibration.measured)
+    elif halves is not None:  # too few pixels to measure anything: as without halves
+        fit = _Fits.of(k, sigma, est, gate=False)
     deviation = np.where(est, k - fit.base, np.float32(0))
     if calibration is None and sigma_calibrated:
         calibration = Calibration(np.zeros(1), np.ones(1), pixel_prior_variance(deviation[est], sigma[est]),
@@ -411,10 +415,10 @@ class _Fits:
     allowed: tuple
 
     @classmethod
-    def of(cls, k: np.ndarray, sigma: np.ndarray, est: np.ndarray) -> "_Fits":
+    def of(cls, k: np.ndarray, sigma: np.ndarray, est: np.ndarray, *, gate: bool = True) -> "_Fits":
         weight = np.where(est, np.float32(1) / sigma**2, np.float32(0))
         sums = _Sums.of(k, weight)
-        column_z = column_agreement(k, weight)
+        column_z = column_agreement(k, weight) if gate else float("nan")
         del weight
         col, row = _structured(sums)
         w = k.shape[1]
@@ -440,9 +444,12 @@ class _Fits:
 
 
 #: The column gains fitted on the plane's top and bottom halves apart must agree (:func:`column_agreement`)
-#: by at least this many standard errors for a column model to be a candidate. Measured (96x128 8-bit
-#: bursts, 3 % pixel FPN, accurate solver): 7.9 with 4 % column FPN, 7.1 with 1 %, -0.4 with none; a
-#: 9-frame camera RGGB burst (no column FPN), whose AIC chose ``column`` fitted to vertical edges: -0.9.
+#: by at least this many standard errors for a column model to be a candidate, on a plane whose k's
+#: error is measured (two halves of the frames). Measured (240x320 8-bit, 3 % pixel FPN): 1.3 / 0.4 with
+#: no column FPN, 3.4 / 4.3 with 0.2 %, 8.6-12.6 with 0.5-4 %; 38 planes of bursts without column FPN
+#: -2.7 to 3.0 (docs/method.md section 11). Without halves the solver's sigma_k misses what k learned of
+#: an aliased plane and the pixel model takes it for FPN; a column base turned away there let such a map
+#: through the hold-out check (aliased RGGB, 5 fitted frames: 0.935x), so the gate is not applied.
 COLUMN_Z = 4.0
 
 
