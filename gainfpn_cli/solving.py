@@ -165,9 +165,7 @@ def solve_planes(burst, frames, excluded, exposures, used: slice, in_frame, solv
                                  sigma_calibrated=True)
             measured = model.sigma is not None and (model.calibration.measured or solver.method == "scene")
             report = dataclasses.replace(report, fpn_model=model.chosen, fpn_model_aic=model.scores,
-                                         input_fpn_percent=model.split, confidence_calibrated=measured,
-                                         column_agreement=(round(float(model.column_agreement), 2)
-                                                           if np.isfinite(model.column_agreement) else None))
+                                         input_fpn_percent=model.split, confidence_calibrated=measured)
             kp, structured, calibration = model.k, model.chosen not in ("pixel", "none"), model.calibration
             if model.sigma is not None:
                 pick(confidence)[...] = np.where(pick(confidence) > 0, confidence_from_sigma(model.sigma), 0)

@@ -27,11 +27,7 @@ noise it misses and that score would pick the pixel model on a column-FPN
 sensor.) AIC
 estimates the prediction error on held-out data (it is asymptotically
 leave-one-out cross-validation, Stone 1977), which is what matters when the
-map corrects other captures. AIC counts the pixels as independent, so an error that runs along
-part of a column (interpolating a vertical edge) fits a column model as well as column FPN does;
-where k's error is measured (halves, below) a column model is a candidate only if column gains
-fitted on the top and bottom halves of the plane apart agree (:func:`column_agreement`), as a
-sensor's column FPN does and an edge's does not.
+map corrects other captures.
 
 Once chosen, the pixel model does not take each pixel's k as it is: a pixel
 whose k is uncertain would carry its whole estimation error into the
@@ -95,10 +91,6 @@ class FPNModel:
         With a calibration, the predicted standard error of each written k:
         the calibrated ``sigma_k`` shrunk with k (``sqrt(w) sigma_k``) by the
         pixel model, as it is under a structured one (an upper bound there).
-    column_agreement : float
-        How far column gains fitted on the top and bottom halves apart agree, in standard errors
-        (:func:`column_agreement`): the column models are candidates at :data:`COLUMN_Z` or more.
-        NaN where the gate is not applied (k's error not measured on halves; too few columns).
     """
 
     k: np.ndarray
@@ -107,7 +99,6 @@ class FPNModel:
     split: dict = field(default_factory=dict)
     calibration: Calibration | None = None
     sigma: np.ndarray | None = None  # with a calibration: the predicted standard error of k
-    column_agreement: float = float("nan")
 
 
 @dataclass(frozen=True)
@@ -349,8 +340,7 @@ def select_model(k: np.ndarray, confidence: np.ndarray, *, force: str | None = N
     confidence = np.asarray(confidence, np.float32)
     est = confidence > 0
     sigma = np.maximum(sigma_from_confidence(confidence), 1e-6).astype(np.float32)
-    # the column models' gate only where k's error is measured (see COLUMN_Z)
-    fit = _Fits.of(k, sigma, est, gate=halves is not None or (calibration is not None and calibration.measured))
+    fit = _Fits.of(k, sigma, est)
     strayed = None if halves is None else departure(k, halves, est)
     if halves is not None and calibration is None:  # measured about the solver's own sigma_k's base
         calibration = calibrate(k, sigma, halves, fit.base, est & (strayed == 0))
@@ -358,9 +348,7 @@ def select_model(k: np.ndarray, confidence: np.ndarray, *, force: str | None = N
         sigma = calibration.sigma(sigma)
         if strayed is not None:
             sigma = np.sqrt(sigma**2 + strayed)
-        fit = _Fits.of(k, sigma, est, gate=calibration.measured)
-    elif halves is not None:  # too few pixels to measure anything: as without halves
-        fit = _Fits.of(k, sigma, est, gate=False)
+        fit = _Fits.of(k, sigma, est)
     deviation = np.where(est, k - fit.base, np.float32(0))
     if calibration is None and sigma_calibrated:
         calibration = Calibration(np.zeros(1), np.ones(1), pixel_prior_variance(deviation[est], sigma[est]),
@@ -373,7 +361,7 @@ def select_model(k: np.ndarray, confidence: np.ndarray, *, force: str | None = N
         # and the effective number of its own (the trace of the shrinkage, sum w: Hastie & Tibshirani 1990)
         misfit = float(np.sum(np.where(est, ((1 - shrink) * deviation / sigma) ** 2, 0), dtype=np.float64))
         scores["pixel"] = misfit + 2.0 * (fit.fits[fit.best][1] + 1.0 + float(np.sum(shrink, dtype=np.float64)))
-    chosen = force or min(fit.allowed, key=lambda m: scores[m])
+    chosen = force or min(MODELS, key=lambda m: scores[m])
     written_sigma = None
     if chosen == "pixel":
         model_k = np.where(est, fit.base + shrink * deviation, np.float32(1))
@@ -393,16 +381,14 @@ def select_model(k: np.ndarray, confidence: np.ndarray, *, force: str | None = N
         "column": 100.0 * robust_spread(1.0 / fit.col[fit.sums.w.sum(axis=0) > 0]) if est.any() else 0.0,
         "row": 100.0 * abs(fit.row[0] - fit.row[1]) / 2.0,
     }
-    return FPNModel(model_k.astype(np.float32), chosen, scores, split, calibration, written_sigma, fit.column_z)
+    return FPNModel(model_k.astype(np.float32), chosen, scores, split, calibration, written_sigma)
 
 
 @dataclass(frozen=True)
 class _Fits:
     """The structured models fitted to k with weights ``1 / sigma^2``: each a gain per (row parity,
     column) with its parameters beyond the overall scale (which the gauge fixes), their AIC, the
-    column and row parts of ``column+row``, the best one's map (``base``), the column gains'
-    agreement between the plane's top and bottom (:func:`column_agreement`) and the models it
-    allows (the column ones only at :data:`COLUMN_Z` or more)."""
+    column and row parts of ``column+row``, and the best one's map (``base``)."""
 
     sums: _Sums
     fits: dict
@@ -411,14 +397,11 @@ class _Fits:
     row: np.ndarray
     best: str
     base: np.ndarray
-    column_z: float
-    allowed: tuple
 
     @classmethod
-    def of(cls, k: np.ndarray, sigma: np.ndarray, est: np.ndarray, *, gate: bool = True) -> "_Fits":
+    def of(cls, k: np.ndarray, sigma: np.ndarray, est: np.ndarray) -> "_Fits":
         weight = np.where(est, np.float32(1) / sigma**2, np.float32(0))
         sums = _Sums.of(k, weight)
-        column_z = column_agreement(k, weight) if gate else float("nan")
         del weight
         col, row = _structured(sums)
         w = k.shape[1]
@@ -432,47 +415,14 @@ class _Fits:
         }
         scores = {name: sums.chi2(fit) + 2.0 * params for name, (fit, params) in fits.items()}
         parity = np.arange(k.shape[0]) % 2
-        allowed = [m for m in fits if "column" not in m or not column_z < COLUMN_Z]  # NaN: not measurable
-        best = min(allowed, key=lambda m: scores[m])
+        best = min(fits, key=lambda m: scores[m])
         base = np.broadcast_to(fits[best][0].astype(np.float32), (2, w))[parity]
-        return cls(sums, fits, scores, col, row, best, base, column_z, tuple(allowed) + ("pixel",))
+        return cls(sums, fits, scores, col, row, best, base)
 
     def full(self, model: str) -> np.ndarray:
         """The structured ``model``'s map, frame-sized."""
         parity = np.arange(self.base.shape[0]) % 2
         return np.broadcast_to(self.fits[model][0].astype(np.float32), (2, self.base.shape[1]))[parity]
-
-
-#: The column gains fitted on the plane's top and bottom halves apart must agree (:func:`column_agreement`)
-#: by at least this many standard errors for a column model to be a candidate, on a plane whose k's
-#: error is measured (two halves of the frames). Measured (240x320 8-bit, 3 % pixel FPN): 1.3 / 0.4 with
-#: no column FPN, 3.4 / 4.3 with 0.2 %, 8.6-12.6 with 0.5-4 %; 38 planes of bursts without column FPN
-#: -2.7 to 3.0 (docs/method.md section 11). Without halves the solver's sigma_k misses what k learned of
-#: an aliased plane and the pixel model takes it for FPN; a column base turned away there let such a map
-#: through the hold-out check (aliased RGGB, 5 fitted frames: 0.935x), so the gate is not applied.
-COLUMN_Z = 4.0
-
-
-def column_agreement(k: np.ndarray, weight: np.ndarray) -> float:
-    """How far column gains fitted apart on the top and bottom halves of the rows agree: their
-    covariance over the columns both halves see, in standard errors (NaN with fewer than 8 such columns).
-
-    A sensor's column FPN is the same down the whole column, so the halves' gains covary; an error
-    that runs along a column (interpolating the scene's vertical edges) does not reach from one half
-    to the other. AIC counts the pixels as independent and cannot tell the two apart."""
-    half = k.shape[0] // 4 * 2  # an even row: both halves hold both row parities alike
-    means = []
-    for rows in (slice(0, half), slice(half, None)):
-        total = weight[rows].sum(axis=0, dtype=np.float64)
-        wk = (weight[rows] * k[rows]).sum(axis=0, dtype=np.float64)  # float32 product: half a plane at a time
-        means.append((np.divide(wk, total, out=np.zeros_like(total), where=total > 0), total > 0))
-    seen = means[0][1] & means[1][1]
-    if seen.sum() < 8:
-        return float("nan")
-    a, b = (m[seen] - m[seen].mean() for m, _ in means)
-    cov = float(np.mean(a * b))
-    se = np.sqrt((float(np.mean(a * a) * np.mean(b * b)) + cov**2) / seen.sum())
-    return cov / se if se > 0 else float("nan")
 
 
 #: :func:`pixel_prior_variance` estimates one number: from this many pixels
