@@ -147,10 +147,22 @@ def local_sigma2(sigma: np.ndarray, mask: np.ndarray) -> np.ndarray:
 
 def _window_mean(values: np.ndarray, mask: np.ndarray, side: int) -> np.ndarray:
     """The mean of float32 ``values`` over the ``mask`` pixels of the ``side`` x ``side`` window around
-    each pixel; 0 where the window has none."""
-    count = window_sum(mask.astype(np.float32), side)
-    total = window_sum(np.where(mask, values, np.float32(0)), side)
-    return np.divide(total, count, out=np.zeros_like(total), where=count > 0)
+    each pixel; 0 where the window has none.
+
+    Summed only over the mask's bounding box grown by half a window (the halves' central 256 px of
+    a plane, not the plane): no window beyond it holds a mask pixel, and the mirrored border of the
+    crop holds none either."""
+    out = np.zeros(mask.shape, np.float32)
+    rows, columns = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if rows.size == 0:
+        return out
+    half = side // 2
+    box = (slice(max(rows[0] - half, 0), rows[-1] + half + 1), slice(max(columns[0] - half, 0), columns[-1] + half + 1))
+    inside = mask[box]
+    count = window_sum(inside.astype(np.float32), side)
+    total = window_sum(np.where(inside, np.asarray(values, np.float32)[box], np.float32(0)), side)
+    np.divide(total, count, out=out[box], where=count > 0)
+    return out
 
 
 #: Fewest pixels both halves and the full fit estimated for :func:`calibrate` to measure anything:
