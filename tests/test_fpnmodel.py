@@ -1,7 +1,10 @@
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from gainfpn_cli import metrics
+from gainfpn_cli.geometry.resample import masked_window_mean, window_sum
 from gainfpn_cli.sim.sensor import PRESETS, with_overrides
 from gainfpn_cli.sim.simulate import simulate_burst
 from gainfpn_cli.solve.accurate import solve_accurate
@@ -231,3 +234,19 @@ def test_the_pixel_fpn_is_not_sliced_by_its_own_sigma():
     calibration = calibrate(truth + (e_a + e_b) / 2, sigma, halves, ones, ones > 0)
     assert np.sqrt(calibration.prior) == pytest.approx(0.05, rel=0.03)
     np.testing.assert_allclose(calibration.factor, 1.0, rtol=0.1)
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), top=st.integers(0, 39), left=st.integers(0, 49),
+       height=st.integers(1, 40), width=st.integers(1, 50), side=st.sampled_from([3, 5, 9]))
+def test_the_masked_window_mean_over_the_mask_box_is_the_one_over_the_plane(seed, top, left, height, width, side):
+    # the halves' region of a plane, anywhere (at its edges too), with holes: summing only around it
+    # gives every pixel the mean the whole plane's window sums give, bit for bit
+    rng = np.random.default_rng(seed)
+    values = rng.random((40, 50), dtype=np.float32)
+    mask = np.zeros(values.shape, bool)
+    mask[top:top + height, left:left + width] = rng.random((40, 50))[top:top + height, left:left + width] > 0.2
+    count = window_sum(mask.astype(np.float32), side)
+    total = window_sum(np.where(mask, values, np.float32(0)), side)
+    plane = np.divide(total, count, out=np.zeros_like(total), where=count > 0)
+    np.testing.assert_array_equal(masked_window_mean(values, mask, side), plane)

@@ -100,6 +100,26 @@ def window_sum(image: np.ndarray, side: int) -> np.ndarray:
     return cv2.boxFilter(image, -1, (side, side), normalize=False, borderType=cv2.BORDER_REFLECT)
 
 
+def masked_window_mean(values: np.ndarray, mask: np.ndarray, side: int) -> np.ndarray:
+    """The mean of float32 ``values`` over the ``mask`` pixels of the ``side`` x ``side`` window around
+    each pixel; 0 where the window has none.
+
+    Summed only over the mask's bounding box grown by half a window (a central region of a plane,
+    not the plane): no window beyond it holds a mask pixel, and the mirrored border of the crop
+    holds none either."""
+    out = np.zeros(mask.shape, np.float32)
+    rows, columns = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if rows.size == 0:
+        return out
+    half = side // 2
+    box = (slice(max(rows[0] - half, 0), rows[-1] + half + 1), slice(max(columns[0] - half, 0), columns[-1] + half + 1))
+    inside = mask[box]
+    count = window_sum(inside.astype(np.float32), side)
+    total = window_sum(np.where(inside, np.asarray(values, np.float32)[box], np.float32(0)), side)
+    np.divide(total, count, out=out[box], where=count > 0)
+    return out
+
+
 def low_pass(image: np.ndarray, sigma: float, mask: np.ndarray | None = None) -> np.ndarray:
     """Gaussian low-pass; with ``mask``, normalised so masked-out pixels do not count."""
     import cv2

@@ -62,7 +62,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..geometry.resample import window_sum
+from ..geometry.resample import masked_window_mean
 from ..metrics import robust_spread
 from . import FPN_MODELS
 from .result import regauge, sigma_from_confidence
@@ -142,27 +142,7 @@ def local_sigma2(sigma: np.ndarray, mask: np.ndarray) -> np.ndarray:
     none). A pixel's own sigma_k falls with its own gain (its readings' information), so its
     deciles would slice the pixel FPN itself where the scene is flat; the window's mean follows the scene.
     (k's error does follow a pixel's own sigma_k: the calibration's deciles are by that.)"""
-    return _window_mean(np.asarray(sigma, np.float32) ** 2, mask, LOCAL_WINDOW)
-
-
-def _window_mean(values: np.ndarray, mask: np.ndarray, side: int) -> np.ndarray:
-    """The mean of float32 ``values`` over the ``mask`` pixels of the ``side`` x ``side`` window around
-    each pixel; 0 where the window has none.
-
-    Summed only over the mask's bounding box grown by half a window (the halves' central 256 px of
-    a plane, not the plane): no window beyond it holds a mask pixel, and the mirrored border of the
-    crop holds none either."""
-    out = np.zeros(mask.shape, np.float32)
-    rows, columns = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
-    if rows.size == 0:
-        return out
-    half = side // 2
-    box = (slice(max(rows[0] - half, 0), rows[-1] + half + 1), slice(max(columns[0] - half, 0), columns[-1] + half + 1))
-    inside = mask[box]
-    count = window_sum(inside.astype(np.float32), side)
-    total = window_sum(np.where(inside, np.asarray(values, np.float32)[box], np.float32(0)), side)
-    np.divide(total, count, out=out[box], where=count > 0)
-    return out
+    return masked_window_mean(np.asarray(sigma, np.float32) ** 2, mask, LOCAL_WINDOW)
 
 
 #: Fewest pixels both halves and the full fit estimated for :func:`calibrate` to measure anything:
@@ -206,8 +186,8 @@ def departure(k: np.ndarray, halves: Halves, est: np.ndarray) -> np.ndarray:
     larger one."""
     both = est & (halves.confidence_a > 0) & (halves.confidence_b > 0)
     k_a, k_b = (np.asarray(m, np.float32) for m in (halves.k_a, halves.k_b))  # plane-sized: float32
-    stray = _window_mean((np.asarray(k, np.float32) - (k_a + k_b) / 2) ** 2, both, DEPARTURE_WINDOW)
-    spread = _window_mean(((k_a - k_b) / 2) ** 2, both, DEPARTURE_WINDOW)
+    stray = masked_window_mean((np.asarray(k, np.float32) - (k_a + k_b) / 2) ** 2, both, DEPARTURE_WINDOW)
+    spread = masked_window_mean(((k_a - k_b) / 2) ** 2, both, DEPARTURE_WINDOW)
     return np.where(both & (stray > DEPARTURE_RATIO * spread), stray - spread, np.float32(0))
 
 
