@@ -167,8 +167,16 @@ def test_two_halves_measure_the_error_of_k_and_the_pixel_fpn():
     calibration = calibrate(k, sigma, halves, np.ones(k.shape), confidence > 0)
     np.testing.assert_allclose(calibration.factor, 2.0, rtol=0.1)  # every decile's
     assert np.sqrt(calibration.prior) == pytest.approx(0.02, rel=0.03)
-    assert calibrate(k[:50, :50], sigma[:50, :50], Halves(*(m[:50, :50] for m in vars(halves).values())),
-                     np.ones((50, 50)), confidence[:50, :50] > 0) is None  # 2500 px: too few to measure
+    # fewer pixels (a dark plane's, where many readings are near black): fewer parts of as many pixels
+    def crop(n):
+        return calibrate(k[:n, :n], sigma[:n, :n], Halves(*(m[:n, :n] for m in vars(halves).values())),
+                         np.ones((n, n)), confidence[:n, :n] > 0)
+
+    few = crop(78)  # 6084 px: six parts
+    assert len(few.factor) == 6
+    np.testing.assert_allclose(few.factor, 2.0, rtol=0.15)  # 3 standard errors of a 1000 px part (PART_PIXELS)
+    assert np.sqrt(few.prior) == pytest.approx(0.02, rel=0.05)
+    assert crop(77) is None  # 5929 px: too few to measure
 
 
 def test_the_pixel_model_shrinks_by_the_measured_error():

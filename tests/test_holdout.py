@@ -137,7 +137,12 @@ def _plane_errors(result, burst):
     return out
 
 
-@pytest.mark.parametrize("shape, seed", [((240, 320), 2), pytest.param((480, 640), 3, marks=pytest.mark.slow)])
+#: Missed since 268cd73 (an error both halves share counted): docs/limits.md, "The hold-out check".
+SHARED_ALIASING = pytest.mark.xfail(strict=True, reason="blue kept at 1.045 % from 0.995 %, check 0.9957 +- 0.0016")
+
+
+@pytest.mark.parametrize("shape, seed", [((240, 320), 2),
+                                         pytest.param((480, 640), 3, marks=[pytest.mark.slow, SHARED_ALIASING])])
 def test_a_plane_that_learned_the_aliasing_every_pair_shares_is_not_kept(shape, seed):
     # 12-bit RGGB dead leaves: a red or blue plane sampled every other photosite is aliased, and k fitted to the
     # other frames learns part of the interpolation error the held-out pair makes too, so the raw residual of
