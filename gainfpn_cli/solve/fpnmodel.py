@@ -44,7 +44,8 @@ the procedural scene 0.7x -> 1.3x; a procedural scene 23.2x -> 23.8x.
 Given two more fits on disjoint halves of the frames (:class:`Halves`), both
 are measured instead (:func:`calibrate`): the halves' errors are nearly
 independent, so ``s^2`` is the covariance of their deviations (noise does not
-enter it), and the full fit's error variance in each decile of ``sigma_k`` is
+enter it), and the full fit's error variance in each decile of ``sigma_k``
+(fewer parts on a plane short of 10 000 pixels: :data:`PART_PIXELS`) is
 ``-mean((k_a - k)(k_b - k))`` (a Hausman-type difference: exact when k is the
 halves' average, and needing no truth); ``sigma_k`` is scaled by the measured
 factor. An error the halves share (interpolating a sharp scene) enters neither the Hausman
