@@ -398,7 +398,10 @@ def _confidence(residual, fitted, probe, da, variance, weight, a, est, n_frames)
     The probe's ``da^2`` averaged over a 9x9 window is a's variance if the noise model is right;
     it is scaled by the window's residual variance over what the model predicts for the residuals
     (the probe's, which the fit shrinks by the same leverage as the data's), so pixels by features
-    the model cannot explain, or readings noisier than the model, report their larger error."""
+    the model cannot explain, or readings noisier than the model, report their larger error. A
+    window whose residuals are smaller than the noise model's is not scaled down: near black the
+    readings that stay above it are the noise's high draws, which a fitted scene explains exactly
+    (docs/method.md section 8b)."""
     shape = est.shape
     n = est.size
     use = (weight > 0).reshape(n_frames, n)
@@ -408,7 +411,7 @@ def _confidence(residual, fitted, probe, da, variance, weight, a, est, n_frames)
 
     actual = window_sum(per_pixel(residual**2 / variance), 5)
     expected = window_sum(per_pixel(fitted**2 / variance), 5)
-    excess = np.divide(actual, expected, out=np.ones(shape), where=expected > 0)
+    excess = np.maximum(np.divide(actual, expected, out=np.ones(shape), where=expected > 0), 1.0)
     moved = np.where(est, da.reshape(shape) ** 2, 0.0)
     variance_a = np.divide(window_sum(moved, 9), window_sum(est.astype(np.float64), 9), out=np.full(shape, np.inf),
                            where=est) * excess
