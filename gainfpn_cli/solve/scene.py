@@ -289,7 +289,8 @@ def _solve_tile(tile: Tile) -> tuple[np.ndarray, np.ndarray, int]:
     iterations += its
     fitted = probe - np.tile(a, n_frames) * A.forward(ds) - predicted * np.tile(da, n_frames)
     da = da * unpull
-    confidence = _confidence(residual, fitted, probe, da, variance, weight, a, est, n_frames)
+    at_black = (frames <= 0).any(axis=0)  # a reading at black: left out, and those kept are biased
+    confidence = _confidence(residual, fitted, probe, da, variance, weight, a, est, n_frames, at_black)
     return k.astype(np.float32), confidence.astype(np.float32), iterations
 
 
@@ -391,7 +392,7 @@ def _pcg(operator, rhs, diagonal, iterations: int, rtol: float):
     return x, iterations
 
 
-def _confidence(residual, fitted, probe, da, variance, weight, a, est, n_frames) -> np.ndarray:
+def _confidence(residual, fitted, probe, da, variance, weight, a, est, n_frames, at_black) -> np.ndarray:
     """``1 / (1 + (sigma_k / 1 %)^2)`` from the noise probe: ``da`` is how a draw ``probe`` of the
     noise model moves ``a``, ``fitted`` what of it the fit leaves in the readings.
 
@@ -399,9 +400,9 @@ def _confidence(residual, fitted, probe, da, variance, weight, a, est, n_frames)
     it is scaled by the window's residual variance over what the model predicts for the residuals
     (the probe's, which the fit shrinks by the same leverage as the data's), so pixels by features
     the model cannot explain, or readings noisier than the model, report their larger error. A
-    window whose residuals are smaller than the noise model's is not scaled down: near black the
-    readings that stay above it are the noise's high draws, which a fitted scene explains exactly
-    (docs/method.md section 8b)."""
+    window with a pixel that read black in some frame (``at_black``) is not scaled down: the
+    readings there that stay above black are the noise's high draws, which a fitted scene explains
+    exactly, so their residuals read smaller than the noise (docs/method.md section 8b)."""
     shape = est.shape
     n = est.size
     use = (weight > 0).reshape(n_frames, n)
@@ -411,7 +412,8 @@ def _confidence(residual, fitted, probe, da, variance, weight, a, est, n_frames)
 
     actual = window_sum(per_pixel(residual**2 / variance), 5)
     expected = window_sum(per_pixel(fitted**2 / variance), 5)
-    excess = np.maximum(np.divide(actual, expected, out=np.ones(shape), where=expected > 0), 1.0)
+    excess = np.divide(actual, expected, out=np.ones(shape), where=expected > 0)
+    excess = np.where(window_sum(at_black.reshape(shape).astype(np.float32), 5) > 0, np.maximum(excess, 1.0), excess)
     moved = np.where(est, da.reshape(shape) ** 2, 0.0)
     variance_a = np.divide(window_sum(moved, 9), window_sum(est.astype(np.float64), 9), out=np.full(shape, np.inf),
                            where=est) * excess
