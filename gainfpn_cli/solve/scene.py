@@ -289,7 +289,8 @@ def _solve_tile(tile: Tile) -> tuple[np.ndarray, np.ndarray, int]:
     iterations += its
     fitted = probe - np.tile(a, n_frames) * A.forward(ds) - predicted * np.tile(da, n_frames)
     da = da * unpull
-    at_black = (frames <= 0).any(axis=0)  # a reading at black: left out, and those kept are biased
+    at_black = frames <= 0  # a reading at black: left out, and those kept are biased (not a left-out pixel's)
+    at_black = (at_black if tile.excluded is None else at_black & ~tile.excluded).any(axis=0)
     confidence = _confidence(residual, fitted, probe, da, variance, weight, a, est, n_frames, at_black)
     return k.astype(np.float32), confidence.astype(np.float32), iterations
 
