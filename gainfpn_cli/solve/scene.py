@@ -289,8 +289,12 @@ def _solve_tile(tile: Tile) -> tuple[np.ndarray, np.ndarray, int]:
     iterations += its
     fitted = probe - np.tile(a, n_frames) * A.forward(ds) - predicted * np.tile(da, n_frames)
     da = da * unpull
-    at_black = frames <= 0  # a reading at black: left out, and those kept are biased (not a left-out pixel's)
-    at_black = (at_black if tile.excluded is None else at_black & ~tile.excluded).any(axis=0)
+    # pixels that read black in some frame: left out there, and their readings kept are biased
+    # (a left-out reading, a defect's or a mover's, is not one the solve could have used)
+    at_black = frames <= 0
+    if tile.excluded is not None:
+        at_black &= ~tile.excluded
+    at_black = at_black.any(axis=0)
     confidence = _confidence(residual, fitted, probe, da, variance, weight, a, est, n_frames, at_black)
     return k.astype(np.float32), confidence.astype(np.float32), iterations
 
@@ -414,7 +418,7 @@ def _confidence(residual, fitted, probe, da, variance, weight, a, est, n_frames,
     actual = window_sum(per_pixel(residual**2 / variance), 5)
     expected = window_sum(per_pixel(fitted**2 / variance), 5)
     excess = np.divide(actual, expected, out=np.ones(shape), where=expected > 0)
-    excess = np.where(window_sum(at_black.reshape(shape).astype(np.float32), 5) > 0, np.maximum(excess, 1.0), excess)
+    excess = np.where(window_sum(at_black.astype(np.float32), 5) > 0, np.maximum(excess, 1.0), excess)
     moved = np.where(est, da.reshape(shape) ** 2, 0.0)
     variance_a = np.divide(window_sum(moved, 9), window_sum(est.astype(np.float64), 9), out=np.full(shape, np.inf),
                            where=est) * excess
