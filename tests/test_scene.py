@@ -18,12 +18,11 @@ from gainfpn_cli.sim.sensor import PRESETS
 from gainfpn_cli.sim.simulate import simulate_burst
 from gainfpn_cli.solve.accurate import solve_accurate
 from gainfpn_cli.solve.result import sigma_from_confidence
-from gainfpn_cli.solve.scene import (
-    SceneOptions,
+from gainfpn_cli.solve.scene import SceneOptions, solve_scene
+from gainfpn_cli.solve.scenemodel import (
     box_spline_weights,
     noise_variance,
     observation_matrix,
-    solve_scene,
 )
 
 
