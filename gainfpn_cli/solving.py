@@ -14,7 +14,9 @@ import numpy as np
 from .burst import LoadedBurst
 from .geometry.planes import plane_views, solve_grids
 from .geometry.resample import positions as warp_positions
+from .geometry.resample import window_sum
 from .report import Holdout, PlaneCheck, PlaneReport, SolverChoice
+from .solve import bootstrap
 from .solve.accurate import AccurateOptions, solve_accurate, solve_accurate_many
 from .solve.aliasing import aliasing
 from .solve.blocks import solve_paper
@@ -141,9 +143,10 @@ def solve_planes(burst, frames, excluded, exposures, used: slice, in_frame, solv
     (k = 1 and confidence 0 elsewhere); ``models`` (plane name -> FPN model) forces each plane's model;
     ``split`` measures the accurate solver's sigma_k and pixel FPN of each plane with two more fits, on
     the even and the odd frames of ``used`` (on :func:`central` regions, and with
-    :data:`MIN_SPLIT_FRAMES` or more; the scene solver's sigma_k is measured by its noise probe, and
-    halves of a burst are too few frames for its latent scene), and ``calibrations`` (plane name ->
-    Calibration) gives them as measured before."""
+    :data:`MIN_SPLIT_FRAMES` or more; with fewer, its sigma_k on the burst the scene model predicts:
+    :func:`bootstrapped`; the scene solver's sigma_k is measured by its noise probe, and halves of a
+    burst are too few frames for its latent scene), and ``calibrations`` (plane name -> Calibration)
+    gives them as measured before."""
     k, confidence, solved = solve_raw(burst, frames, excluded, exposures, used, in_frame, solver, progress,
                                       regions=regions)
     halves = None
@@ -152,6 +155,9 @@ def solve_planes(burst, frames, excluded, exposures, used: slice, in_frame, solv
         halves = [half[:2] for half in solve_raws(burst, frames, excluded, exposures,
                                                    [slice(used.start + offset, used.stop, 2) for offset in (0, 1)],
                                                    in_frame, solver, progress, regions=middle)]
+    elif split and solver.method == "accurate" and calibrations is None:
+        calibrations = bootstrapped(burst, frames, excluded, exposures, used, in_frame, solver, progress, k,
+                                    confidence)
     reports, calibrated = {}, {}
     for name, pick, _ in plane_views(burst.cfa, burst.channels):  # the gauge and the FPN model, plane by plane
         if name not in solved:  # its grid has no region: k = 1, confidence 0
@@ -182,6 +188,54 @@ def solve_planes(burst, frames, excluded, exposures, used: slice, in_frame, solv
 MIN_SPLIT_FRAMES = 6
 
 
+def bootstrapped(burst, frames, excluded, exposures, used: slice, in_frame, solver: Solver, progress, k,
+                 confidence) -> dict:
+    """Each plane's :class:`solve.fpnmodel.Calibration` of the accurate solver's sigma_k, measured on the
+    burst the scene model fitted to the frames ``used`` predicts (:mod:`solve.bootstrap`), on the
+    :func:`central` regions; ``k`` and ``confidence`` are the fit's, frame-shaped. Planes with too few
+    pixels measured, and a CFA mosaic's (whose colour planes' latent scene is still aliased: docs/method.md
+    section 8b), are not in it: their sigma_k is the solver's own."""
+    if burst.cfa is not None:
+        return {}
+    regions = central(burst, frames, solver)
+    jobs = _jobs(burst, frames, excluded, exposures, [used], in_frame, solver, regions)
+    update = progress("confidence", 0) if progress else None
+    models = [{"frames": f, "motion": m, "saturation": burst.saturation, "excluded": x, "exposures": e,
+               "options": scene_options(solver.scene, grid)} for _, grid, (f, x, m, e) in jobs]
+    rendered = bootstrap.render_many(models, options=solver.scene, workers=solver.workers, progress=update,
+                                     executor=solver.executor)
+    problems, fits = [], []
+    for index, ((_, grid, (f, x, m, e)), model) in enumerate(zip(jobs, rendered)):
+        rows, columns = regions[grid.name]
+        k_fit, c_fit = grid.gather(k)[rows, columns], grid.gather(confidence)[rows, columns]
+        gain = np.where(c_fit > 0, 1.0 / k_fit, 1.0)
+        synthetic = bootstrap.synthetic_burst(model, gain, np.random.default_rng([BOOTSTRAP_SEED, index]))
+        problems.append({"frames": synthetic, "motion": m, "saturation": burst.saturation, "excluded": x,
+                         "exposures": e})
+        # pixels whose every usable reading the model sees, a kernel's reach inside
+        usable = (f > 0) & (f < (np.inf if burst.saturation is None else burst.saturation))
+        if x is not None:
+            usable &= ~x
+        missed = np.any(usable & (model.variance <= 0), axis=0).astype(np.float32)
+        fits.append((grid, k_fit, c_fit, window_sum(missed, 2 * BOOTSTRAP_MARGIN + 1) == 0))
+    results = solve_accurate_many(problems, options=solver.accurate, workers=solver.workers, progress=update,
+                                  executor=solver.executor)
+    out = {}
+    for (grid, k_fit, c_fit, seen), result in zip(fits, results):
+        measured = bootstrap.calibration(sigma_from_confidence(c_fit), result.k / k_fit - 1,
+                                         seen & (c_fit > 0) & (result.confidence > 0))
+        if measured is not None:
+            out.update(dict.fromkeys(grid.positions, measured))
+    return out
+
+
+#: Seed of :func:`bootstrapped`'s noise draws (with the grid's place in the list).
+BOOTSTRAP_SEED = 20261127
+#: Pixels of :func:`bootstrapped`'s regions within this many px of a reading the model does not see are
+#: not measured: the cubic kernel's reach (its comparisons there have fewer partners than the fit's).
+BOOTSTRAP_MARGIN = 2
+
+
 def solve_raw(burst, frames, excluded, exposures, used: slice, in_frame, solver: Solver, progress, *,
               regions: dict | None = None):
     """Every grid's k and confidence as the solver gives them (no FPN model), frame-shaped, and each
@@ -194,25 +248,7 @@ def solve_raws(burst, frames, excluded, exposures, useds, in_frame, solver: Solv
     """:func:`solve_raw` of each of the frame slices ``useds``. The accurate and scene solvers take
     every grid's tiles in one go, so that grids (a CFA's planes) and regions of one tile each run on
     every worker."""
-    jobs = []  # (which used, grid, the problem: frames, left out, motion, exposures)
-    for i, used in enumerate(useds):
-        fit = frames[used]  # a slice: a view
-        left_out = None if excluded is None else np.broadcast_to(excluded[used, ..., None], fit.shape)  # every channel
-        motion = in_frame.select(range(len(frames))[used])
-        for grid in grids_of(burst, frames, solver.method):
-            if regions is not None and grid.name not in regions:
-                continue
-            grid_motion = motion.conjugate(grid.S)
-            if regions is None:
-                grid_frames = grid.gather(fit)
-                grid_left_out = None if left_out is None else grid.gather(left_out)
-            else:
-                rows, columns = regions[grid.name]
-                grid_frames = _gather_region(grid, fit, rows, columns)
-                grid_left_out = None if left_out is None else _gather_region(grid, left_out, rows, columns)
-                grid_motion = grid_motion.conjugate(np.array([[1.0, 0, columns.start], [0, 1.0, rows.start],
-                                                              [0, 0, 1]]))
-            jobs.append((i, grid, (grid_frames, grid_left_out, grid_motion, exposures[used])))
+    jobs = _jobs(burst, frames, excluded, exposures, useds, in_frame, solver, regions)
     if solver.method in ("accurate", "scene") and len(jobs) > 1:  # every grid's tiles on every worker
         update = progress("solve halves" if len(useds) > 1 else "solve", 0) if progress else None
         problems = [dict(frames=f, motion=m, saturation=burst.saturation, excluded=x, exposures=e,
@@ -235,6 +271,31 @@ def solve_raws(burst, frames, excluded, exposures, useds, in_frame, solver: Solv
         grid.scatter(confidence, grid_confidence)
         solved.update({name: PlaneReport(solver.method, grid.name, result.stats) for name in grid.positions})
     return out
+
+
+def _jobs(burst, frames, excluded, exposures, useds, in_frame, solver: Solver, regions: dict | None) -> list:
+    """``(which of useds, grid, (frames, left out, motion, exposures))`` of every grid (in ``regions``,
+    if given) for each of the frame slices ``useds``."""
+    jobs = []
+    for i, used in enumerate(useds):
+        fit = frames[used]  # a slice: a view
+        left_out = None if excluded is None else np.broadcast_to(excluded[used, ..., None], fit.shape)  # every channel
+        motion = in_frame.select(range(len(frames))[used])
+        for grid in grids_of(burst, frames, solver.method):
+            if regions is not None and grid.name not in regions:
+                continue
+            grid_motion = motion.conjugate(grid.S)
+            if regions is None:
+                grid_frames = grid.gather(fit)
+                grid_left_out = None if left_out is None else grid.gather(left_out)
+            else:
+                rows, columns = regions[grid.name]
+                grid_frames = _gather_region(grid, fit, rows, columns)
+                grid_left_out = None if left_out is None else _gather_region(grid, left_out, rows, columns)
+                grid_motion = grid_motion.conjugate(np.array([[1.0, 0, columns.start], [0, 1.0, rows.start],
+                                                              [0, 0, 1]]))
+            jobs.append((i, grid, (grid_frames, grid_left_out, grid_motion, exposures[used])))
+    return jobs
 
 
 def _gather_region(grid, stack, rows: slice, columns: slice) -> np.ndarray:

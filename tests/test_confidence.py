@@ -1,4 +1,5 @@
-"""The written confidence predicts k's error (measured on two halves of the frames)."""
+"""The written confidence predicts k's error (measured on two halves of the frames, or with fewer
+frames on the burst the scene model predicts)."""
 
 from __future__ import annotations
 
@@ -50,7 +51,29 @@ def test_the_written_confidence_is_the_error_k_has(sensor, shape, seed):
     assert result.report.prnu_percent.pixel == pytest.approx(100 * sensor.fpn_pixel, rel=0.2)
 
 
-def test_five_frames_are_too_few_to_measure_it():
-    # 4 fitted frames: halves of 2 would have correlated errors, so the solver's sigma_k stays
-    result, _ = _estimate(PRESETS["paper"], 5, shape=(96, 128), seed=5)
+@pytest.mark.parametrize("seed", [6, pytest.param(7, marks=pytest.mark.slow)])
+def test_with_five_frames_it_is_measured_on_the_burst_the_scene_model_predicts(seed):
+    # 4 fitted frames, too few for halves; a bright sharp scene, where most of k's error is the pairwise
+    # model's, which the fit takes up and the residuals do not show: the solver's own sigma_k (written before
+    # the model's burst measured it) erred 1.02-1.46x in the deciles of seed 6 and 0.98-1.46x of seed 7;
+    # measured, 1.00-1.11 and 0.94-1.10
+    result, burst = _estimate(PRESETS["paper"], 5, shape=(96, 128), exposure=0.75, scene="dead-leaves", seed=seed)
+    assert all(p.confidence_calibrated for p in result.report.planes.values())
+    ratios = _deciles(result, burst)
+    assert all(0.75 <= r <= 1.25 for r in ratios), ratios
+
+
+def test_the_model_burst_measures_the_same_on_one_and_two_workers():
+    burst = simulate_burst(sensor=PRESETS["paper"], n_frames=5, shape=(96, 128), exposure=0.75, scene="dead-leaves",
+                           seed=6)
+    runs = [api.estimate(burst.frames.astype(np.float32), saturation=255, **{"solver.workers": workers})
+            for workers in (1, 2)]
+    assert all(p.confidence_calibrated for p in runs[0].report.planes.values())
+    np.testing.assert_array_equal(runs[0].confidence, runs[1].confidence)
+    np.testing.assert_array_equal(runs[0].k, runs[1].k)
+
+
+def test_a_mosaic_of_five_frames_keeps_the_solvers_own():
+    # a colour plane's latent scene is still aliased, so its predicted burst would not hold the scene's detail
+    result, _ = _estimate(RAW12, 5, shape=(160, 192), seed=5)
     assert not any(p.confidence_calibrated for p in result.report.planes.values())

@@ -117,12 +117,12 @@ class Halves:
 class Calibration:
     """What two halves measured (:func:`calibrate`): the factor that scales ``sigma_k`` to k's
     actual error, at the RMS ``sigma_k`` of each decile (between them, interpolated in
-    ``log sigma_k``; beyond them, the end ones), and the pixel FPN prior ``s^2``. ``measured``
-    is False for the solver's ``sigma_k`` taken as it is (factor 1, the prior from the deviations)."""
+    ``log sigma_k``; beyond them, the end ones), and the pixel FPN prior ``s^2`` (None: from the
+    deviations). ``measured`` is False for the solver's ``sigma_k`` taken as it is (factor 1)."""
 
     log_sigma: np.ndarray
     factor: np.ndarray
-    prior: float
+    prior: float | None
     measured: bool = True
 
     def sigma(self, sigma: np.ndarray) -> np.ndarray:
@@ -355,7 +355,8 @@ def select_model(k: np.ndarray, confidence: np.ndarray, *, force: str | None = N
     if calibration is None and sigma_calibrated:
         calibration = Calibration(np.zeros(1), np.ones(1), pixel_prior_variance(deviation[est], sigma[est]),
                                   measured=False)
-    prior = pixel_prior_variance(deviation[est], sigma[est]) if calibration is None else calibration.prior
+    prior = calibration.prior if calibration is not None and calibration.prior is not None else \
+        pixel_prior_variance(deviation[est], sigma[est])
     shrink = np.where(est, np.float32(prior) / (np.float32(prior) + sigma**2), np.float32(0))
     scores = {**fit.scores, "pixel": 2.0 * max(int(est.sum()) - 1, 0)}  # every pixel's own k fits exactly
     if calibration is not None:

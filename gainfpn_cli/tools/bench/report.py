@@ -64,7 +64,8 @@ def _confidence_table(rows: list[dict]) -> list[str]:
         return []
     lines = ["", "Confidence: per tenth of the written sigma_k, k's actual error (RMS) over the sigma_k it states "
              f"(RMS); 1 is honest, the target {CALIBRATION_LOW}-{CALIBRATION_HIGH} in every tenth. 'calibrated': "
-             "sigma_k measured on two halves of the frames (6 fitted frames or more), else the solver's own.", "",
+             "sigma_k measured on two halves of the frames (6 fitted frames or more) or on the burst the scene "
+             "model predicts (3-5, not on a CFA mosaic), else the solver's own.", "",
              "| point | burst | residual FPN % (bound) | MSE ratio | calibrated | tenths, lowest to highest sigma_k "
              "| outside target |", "|---|---|---|---|---|---|---|"]
     for r in rows:

@@ -1,0 +1,117 @@
+"""k's error measured on the burst the scene model predicts (a parametric bootstrap): what calibrates
+the accurate solver's ``sigma_k`` where the frames are too few for two halves (docs/method.md
+section 11).
+
+With 3-5 frames fitted, most of k's error on a detailed scene is the pairwise model's (interpolating
+detail no kernel predicts), and the fit takes it up: it does not show in the residuals the solver's
+``sigma_k`` is made of. The scene model (:mod:`solve.scenemodel`) explains the same readings from a
+latent scene twice as fine as the pixels, so the burst it predicts holds the scene's detail as the
+frames see it. That burst is rendered with a known gain (the estimate's own ``1 / k``) and a draw of
+the fitted noise model, solved again by the pairwise solver, and its error measured against that
+gain: per tenth of the real fit's ``sigma_k``, its RMS over the RMS ``sigma_k`` scales the real
+``sigma_k``, as the halves' Hausman difference does with more frames. Pure array functions; the
+planes and regions are :mod:`solving`'s.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .fpnmodel import MAX_PARTS, MIN_PARTS, PART_PIXELS, Calibration
+from .scenemodel import fit_tile
+from .tiling import (
+    Tile,
+    checked_problem,
+    power_of_two_scale,
+    ramp,
+    solve_tiles,
+    tiles_of,
+)
+
+
+@dataclass(frozen=True)
+class Rendered:
+    """The readings a fitted scene model predicts for a burst, gains 1 (``(F, H, W)`` float32, in
+    the frames' units and at their exposures; 0 where the model does not see the reading: outside
+    its scene, or a reading the fit left out), and its noise model's variance of each."""
+
+    readings: np.ndarray
+    variance: np.ndarray
+
+
+def render_many(problems, *, options, workers: int = 2, progress=None, executor=None) -> list[Rendered]:
+    """The burst the scene model fitted to each of ``problems`` predicts (dicts as for
+    :func:`solve.scene.solve_scene_many`, each with its own ``options`` if it has them), every tile
+    fitted in one go; tiles overlap as the solver's and are blended by the same ramps."""
+    prepared = []
+    for p in problems:
+        frames, motion, exposures = checked_problem(p["frames"], p["motion"], p.get("excluded"), p.get("exposures"))
+        prepared.append(tiles_of(frames, p.get("excluded"), motion, p.get("saturation"), p.get("options", options),
+                                 exposures))
+    shapes = iter([np.shape(p["frames"]) for p in problems])
+    return solve_tiles(prepared, _render_tile, lambda tiles, results: _blend(tiles, results, next(shapes)),
+                       workers=workers, progress=progress, executor=executor)
+
+
+def _render_tile(tile: Tile) -> tuple[np.ndarray, np.ndarray]:
+    """The readings of one tile (its halo included) its fitted model predicts, and their variance;
+    both 0 where it does not see a reading."""
+    shape = tile.frames.shape
+    fit = fit_tile(tile)
+    if fit is None or fit.noise is None:
+        return np.zeros(shape, np.float32), np.zeros(shape, np.float32)
+    # the fit's readings are the frames over a power of two, their exposures and its own refined ones
+    scale = power_of_two_scale(tile.frames.astype(np.float64)) * fit.exposure
+    if tile.exposures is not None:
+        scale = scale * np.asarray(tile.exposures)
+    scale = np.repeat(scale, shape[1] * shape[2])
+    variance = np.maximum(fit.noise[0] + fit.noise[1] * np.abs(fit.predicted), 0.0) * scale**2
+    readings = np.where(fit.valid, fit.predicted * scale, 0.0)
+    return readings.reshape(shape).astype(np.float32), np.where(fit.valid, variance, 0.0).reshape(shape).astype(
+        np.float32)
+
+
+def _blend(tiles: list[Tile], results, shape) -> Rendered:
+    readings, variance = np.zeros(shape, np.float32), np.zeros(shape, np.float32)
+    weight = np.zeros(shape, np.float32)
+    halo = tiles[0].options.halo
+    for i, tile in enumerate(tiles):
+        r, v = results[i]
+        results[i] = None
+        w = ramp(r.shape[1:], (tile.y0, tile.x0), shape[1:], halo).astype(np.float32) * (v > 0)  # where it sees
+        sl = (slice(None), slice(tile.y0, tile.y0 + r.shape[1]), slice(tile.x0, tile.x0 + r.shape[2]))
+        readings[sl] += w * r
+        variance[sl] += w * v
+        weight[sl] += w
+    seen = weight > 0
+    return Rendered(np.divide(readings, weight, out=np.zeros(shape, np.float32), where=seen),
+                    np.divide(variance, weight, out=np.zeros(shape, np.float32), where=seen))
+
+
+def synthetic_burst(rendered: Rendered, gain: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """``rendered``'s readings times ``gain`` (``(H, W)``) plus a draw of its noise; 0 (read as black:
+    left out by the solvers) where it does not see a reading."""
+    noise = rng.standard_normal(rendered.readings.shape).astype(np.float32) * np.sqrt(rendered.variance)
+    burst = rendered.readings * np.asarray(gain, np.float32) + noise
+    return np.where(rendered.variance > 0, np.maximum(burst, np.float32(1e-6)), np.float32(0))
+
+
+def calibration(sigma: np.ndarray, error: np.ndarray, mask: np.ndarray) -> Calibration | None:
+    """The :class:`solve.fpnmodel.Calibration` that scales ``sigma`` (a fit's ``sigma_k``) to the RMS of
+    ``error`` (the same fit's error on a synthetic burst) in each tenth of ``sigma`` over ``mask``
+    (fewer parts on fewer pixels, as :func:`solve.fpnmodel.calibrate`); its pixel FPN prior is left to
+    the deviations (None). None where too few pixels are measured."""
+    use = mask & np.isfinite(sigma) & np.isfinite(error)
+    count = min(int(use.sum()) // PART_PIXELS, MAX_PARTS)
+    if count < MIN_PARTS:
+        return None
+    s, e = sigma[use].astype(np.float64), error[use].astype(np.float64)
+    e = e - e.mean()  # the gauge: k's overall level is free
+    log_sigma, factor = [], []
+    for part in np.array_split(np.argsort(s), count):
+        square = float(np.mean(s[part] ** 2))
+        log_sigma.append(0.5 * np.log(square))
+        factor.append(max(float(np.sqrt(np.mean(e[part] ** 2) / square)), 1.0))
+    return Calibration(np.array(log_sigma), np.array(factor), None)
