@@ -205,18 +205,18 @@ def bootstrapped(burst, frames, excluded, exposures, used: slice, in_frame, solv
     rendered = bootstrap.render_many(models, options=solver.scene, workers=solver.workers, progress=update,
                                      executor=solver.executor)
     problems, fits = [], []
-    for index, ((_, grid, (f, x, m, e)), model) in enumerate(zip(jobs, rendered)):
+    for (_, grid, (f, x, m, e)), model in zip(jobs, rendered):
         rows, columns = regions[grid.name]
         k_fit, c_fit = grid.gather(k)[rows, columns], grid.gather(confidence)[rows, columns]
         gain = np.where(c_fit > 0, 1.0 / k_fit, 1.0)
-        synthetic = bootstrap.synthetic_burst(model, gain, np.random.default_rng([BOOTSTRAP_SEED, index]))
+        synthetic = bootstrap.synthetic_burst(model, gain, np.random.default_rng(BOOTSTRAP_SEED))
         problems.append({"frames": synthetic, "motion": m, "saturation": burst.saturation, "excluded": x,
                          "exposures": e})
         # pixels whose every usable reading the model sees, a kernel's reach inside
         usable = (f > 0) & (f < (np.inf if burst.saturation is None else burst.saturation))
         if x is not None:
             usable &= ~x
-        missed = np.any(usable & (model.variance <= 0), axis=0).astype(np.float32)
+        missed = np.any(usable & ~model.seen, axis=0).astype(np.float32)
         fits.append((grid, k_fit, c_fit, window_sum(missed, 2 * BOOTSTRAP_MARGIN + 1) == 0))
     results = solve_accurate_many(problems, options=solver.accurate, workers=solver.workers, progress=update,
                                   executor=solver.executor)
@@ -229,7 +229,8 @@ def bootstrapped(burst, frames, excluded, exposures, used: slice, in_frame, solv
     return out
 
 
-#: Seed of :func:`bootstrapped`'s noise draws (with the grid's place in the list).
+#: Seed of :func:`bootstrapped`'s noise draws, the same for every grid: planes alike but for a power of
+#: two in scale (RGB channels of a grey scene) are measured alike.
 BOOTSTRAP_SEED = 20261127
 #: Pixels of :func:`bootstrapped`'s regions within this many px of a reading the model does not see are
 #: not measured: the cubic kernel's reach (its comparisons there have fewer partners than the fit's).

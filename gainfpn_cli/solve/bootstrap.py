@@ -33,12 +33,14 @@ from .tiling import (
 
 @dataclass(frozen=True)
 class Rendered:
-    """The readings a fitted scene model predicts for a burst, gains 1 (``(F, H, W)`` float32, in
-    the frames' units and at their exposures; 0 where the model does not see the reading: outside
-    its scene, or a reading the fit left out), and its noise model's variance of each."""
+    """The readings a fitted scene model predicts for a burst, gains 1, the standard deviation of its
+    noise model at each (``(F, H, W)`` float32, in the frames' units and at their exposures; 0
+    where it does not see the reading), and where it sees them: inside its scene, and read by the
+    fit (not clipped, at black or left out)."""
 
     readings: np.ndarray
-    variance: np.ndarray
+    noise: np.ndarray
+    seen: np.ndarray
 
 
 def render_many(problems, *, options, workers: int = 2, progress=None, executor=None) -> list[Rendered]:
@@ -55,47 +57,48 @@ def render_many(problems, *, options, workers: int = 2, progress=None, executor=
                        workers=workers, progress=progress, executor=executor)
 
 
-def _render_tile(tile: Tile) -> tuple[np.ndarray, np.ndarray]:
-    """The readings of one tile (its halo included) its fitted model predicts, and their variance;
-    both 0 where it does not see a reading."""
+def _render_tile(tile: Tile) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The readings of one tile (its halo included) its fitted model predicts, their noise's standard
+    deviation and where it sees them."""
     shape = tile.frames.shape
     fit = fit_tile(tile)
     if fit is None or fit.noise is None:
-        return np.zeros(shape, np.float32), np.zeros(shape, np.float32)
+        return np.zeros(shape, np.float32), np.zeros(shape, np.float32), np.zeros(shape, bool)
     # the fit's readings are the frames over a power of two, their exposures and its own refined ones
+    # (scaled back as standard deviations, not variances: exact, and far from float32's limits)
     scale = power_of_two_scale(tile.frames.astype(np.float64)) * fit.exposure
     if tile.exposures is not None:
         scale = scale * np.asarray(tile.exposures)
     scale = np.repeat(scale, shape[1] * shape[2])
-    variance = np.maximum(fit.noise[0] + fit.noise[1] * np.abs(fit.predicted), 0.0) * scale**2
-    readings = np.where(fit.valid, fit.predicted * scale, 0.0)
-    return readings.reshape(shape).astype(np.float32), np.where(fit.valid, variance, 0.0).reshape(shape).astype(
-        np.float32)
+    noise = np.sqrt(np.maximum(fit.noise[0] + fit.noise[1] * np.abs(fit.predicted), 0.0)) * scale
+    return (np.where(fit.valid, fit.predicted * scale, 0.0).reshape(shape).astype(np.float32),
+            np.where(fit.valid, noise, 0.0).reshape(shape).astype(np.float32), fit.valid.reshape(shape))
 
 
 def _blend(tiles: list[Tile], results, shape) -> Rendered:
-    readings, variance = np.zeros(shape, np.float32), np.zeros(shape, np.float32)
+    readings, noise = np.zeros(shape, np.float32), np.zeros(shape, np.float32)
     weight = np.zeros(shape, np.float32)
     halo = tiles[0].options.halo
     for i, tile in enumerate(tiles):
-        r, v = results[i]
+        r, n, seen = results[i]
         results[i] = None
-        w = ramp(r.shape[1:], (tile.y0, tile.x0), shape[1:], halo).astype(np.float32) * (v > 0)  # where it sees
+        w = ramp(r.shape[1:], (tile.y0, tile.x0), shape[1:], halo).astype(np.float32) * seen
         sl = (slice(None), slice(tile.y0, tile.y0 + r.shape[1]), slice(tile.x0, tile.x0 + r.shape[2]))
         readings[sl] += w * r
-        variance[sl] += w * v
+        noise[sl] += w * n
         weight[sl] += w
     seen = weight > 0
     return Rendered(np.divide(readings, weight, out=np.zeros(shape, np.float32), where=seen),
-                    np.divide(variance, weight, out=np.zeros(shape, np.float32), where=seen))
+                    np.divide(noise, weight, out=np.zeros(shape, np.float32), where=seen), seen)
 
 
 def synthetic_burst(rendered: Rendered, gain: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """``rendered``'s readings times ``gain`` (``(H, W)``) plus a draw of its noise; 0 (read as black:
-    left out by the solvers) where it does not see a reading."""
-    noise = rng.standard_normal(rendered.readings.shape).astype(np.float32) * np.sqrt(rendered.variance)
-    burst = rendered.readings * np.asarray(gain, np.float32) + noise
-    return np.where(rendered.variance > 0, np.maximum(burst, np.float32(1e-6)), np.float32(0))
+    """``rendered``'s readings times ``gain`` (``(H, W)``) plus a draw of its noise, 0 (read as black:
+    left out by the solvers) where it does not see a reading; a draw at or below 0 reads as black,
+    as a sensor's does."""
+    drawn = rendered.readings * np.asarray(gain, np.float32) \
+        + rng.standard_normal(rendered.readings.shape).astype(np.float32) * rendered.noise
+    return np.where(rendered.seen, np.maximum(drawn, np.float32(0)), np.float32(0))
 
 
 def calibration(sigma: np.ndarray, error: np.ndarray, mask: np.ndarray) -> Calibration | None:
