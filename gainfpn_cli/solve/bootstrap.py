@@ -104,8 +104,10 @@ def synthetic_burst(rendered: Rendered, gain: np.ndarray, rng: np.random.Generat
 def calibration(sigma: np.ndarray, error: np.ndarray, mask: np.ndarray) -> Calibration | None:
     """The :class:`solve.fpnmodel.Calibration` that scales ``sigma`` (a fit's ``sigma_k``) to the RMS of
     ``error`` (the same fit's error on a synthetic burst) in each tenth of ``sigma`` over ``mask``
-    (fewer parts on fewer pixels, as :func:`solve.fpnmodel.calibrate`); its pixel FPN prior is left to
-    the deviations (None). None where too few pixels are measured."""
+    (fewer parts on fewer pixels, as :func:`solve.fpnmodel.calibrate`), never scaled down: the
+    synthetic burst's noise is the share the scene model's fit left in its residuals, so a smaller
+    error there is its noise missing, not ``sigma`` too large (docs/method.md section 11). Its pixel
+    FPN prior is left to the deviations (None). None where too few pixels are measured."""
     use = mask & np.isfinite(sigma) & np.isfinite(error)
     count = min(int(use.sum()) // PART_PIXELS, MAX_PARTS)
     if count < MIN_PARTS:
