@@ -94,7 +94,7 @@ def noise_variance(residuals: np.ndarray, predicted: np.ndarray, bins: int = 8) 
     return float(alpha), float(beta)
 
 
-@dataclass
+@dataclass(frozen=True)
 class SceneFit:
     """One tile's fitted model (:func:`fit_tile`): the readings ``y`` (divided by the frames' unit
     and exposures) and where they count, the model's prediction of them without the gains
