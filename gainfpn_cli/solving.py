@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .burst import LoadedBurst
+from .errors import EstimationError
 from .geometry.planes import plane_views, solve_grids
 from .geometry.resample import positions as warp_positions
 from .geometry.resample import window_sum
@@ -194,7 +195,8 @@ def bootstrapped(burst, frames, excluded, exposures, used: slice, in_frame, solv
     burst the scene model fitted to the frames ``used`` predicts (:mod:`solve.bootstrap`), on the
     :func:`central` regions; ``k`` and ``confidence`` are the fit's, frame-shaped. Planes with too few
     pixels measured, and a CFA mosaic's (whose colour planes' latent scene is still aliased: docs/method.md
-    section 8b), are not in it: their sigma_k is the solver's own."""
+    section 8b), are not in it: their sigma_k is the solver's own, as every plane's if a region's predicted
+    burst cannot be fitted again."""
     if burst.cfa is not None:
         return {}
     regions = central(burst, frames, solver)
@@ -218,8 +220,11 @@ def bootstrapped(burst, frames, excluded, exposures, used: slice, in_frame, solv
             usable &= ~x
         missed = np.any(usable & ~model.seen, axis=0).astype(np.float32)
         fits.append((grid, k_fit, c_fit, window_sum(missed, 2 * BOOTSTRAP_MARGIN + 1) == 0))
-    results = solve_accurate_many(problems, options=solver.accurate, workers=solver.workers, progress=update,
-                                  executor=solver.executor)
+    try:
+        results = solve_accurate_many(problems, options=solver.accurate, workers=solver.workers, progress=update,
+                                      executor=solver.executor)
+    except EstimationError:  # a region the model could not render (no pixel seen twice): nothing measured
+        return {}
     out = {}
     for (grid, k_fit, c_fit, seen), result in zip(fits, results):
         measured = bootstrap.calibration(sigma_from_confidence(c_fit), result.k / k_fit - 1,

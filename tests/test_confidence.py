@@ -73,6 +73,19 @@ def test_the_model_burst_measures_the_same_on_one_and_two_workers():
     np.testing.assert_array_equal(runs[0].k, runs[1].k)
 
 
+def test_a_model_burst_that_cannot_be_fitted_again_leaves_the_solvers_own(monkeypatch):
+    # a region the scene model sees nothing of renders no reading: the estimate goes on, unmeasured
+    from gainfpn_cli.solve import bootstrap
+
+    def blind(problems, **_):
+        return [bootstrap.Rendered(*(np.zeros(np.shape(p["frames"]), dtype) for dtype in (np.float32, np.float32, bool)))
+                for p in problems]
+
+    monkeypatch.setattr(bootstrap, "render_many", blind)
+    result, _ = _estimate(PRESETS["paper"], 5, shape=(96, 128), exposure=0.75, scene="dead-leaves", seed=6)
+    assert not any(p.confidence_calibrated for p in result.report.planes.values())
+
+
 def test_a_mosaic_of_five_frames_keeps_the_solvers_own():
     # a colour plane's latent scene is still aliased, so its predicted burst would not hold the scene's detail
     result, _ = _estimate(RAW12, 5, shape=(160, 192), seed=5)
