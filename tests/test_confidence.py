@@ -78,8 +78,8 @@ def test_a_model_burst_that_cannot_be_fitted_again_leaves_the_solvers_own(monkey
     from gainfpn_cli.solve import bootstrap
 
     def blind(problems, **_):
-        return [bootstrap.Rendered(*(np.zeros(np.shape(p["frames"]), dtype) for dtype in (np.float32, np.float32, bool)))
-                for p in problems]
+        shapes = [np.shape(p["frames"]) for p in problems]
+        return [bootstrap.Rendered(np.zeros(s, np.float32), np.zeros(s, np.float32), np.zeros(s, bool)) for s in shapes]
 
     monkeypatch.setattr(bootstrap, "render_many", blind)
     result, _ = _estimate(PRESETS["paper"], 5, shape=(96, 128), exposure=0.75, scene="dead-leaves", seed=6)
