@@ -31,6 +31,7 @@ from .solve.result import (
     sigma_from_confidence,
 )
 from .solve.scene import SceneOptions, solve_scene_many
+from .solve.tiling import usable
 
 
 @dataclass(frozen=True)
@@ -119,9 +120,7 @@ def _most_aliased(burst, frames, excluded, exposures, used: slice, in_frame, sol
     measured = []
     for grid in grids_of(burst, frames, "accurate"):
         plane = grid.gather(fit)
-        good = (plane > 0) & (plane < (np.inf if burst.saturation is None else burst.saturation))
-        if left_out is not None:
-            good &= ~grid.gather(left_out)
+        good = usable(plane, burst.saturation, None if left_out is None else grid.gather(left_out))
         excess = aliasing(plane, motion.conjugate(grid.S), exposures=exposures[used], good=good,
                           region=regions[grid.name]).excess
         if excess is not None:
@@ -215,10 +214,7 @@ def bootstrapped(burst, frames, excluded, exposures, used: slice, in_frame, solv
         problems.append({"frames": synthetic, "motion": m, "saturation": burst.saturation, "excluded": x,
                          "exposures": e})
         # pixels whose every usable reading the model sees, a kernel's reach inside
-        usable = (f > 0) & (f < (np.inf if burst.saturation is None else burst.saturation))
-        if x is not None:
-            usable &= ~x
-        missed = np.any(usable & ~model.seen, axis=0).astype(np.float32)
+        missed = np.any(usable(f, burst.saturation, x) & ~model.seen, axis=0).astype(np.float32)
         fits.append((grid, k_fit, c_fit, window_sum(missed, 2 * BOOTSTRAP_MARGIN + 1) == 0))
     try:
         results = solve_accurate_many(problems, options=solver.accurate, workers=solver.workers, progress=update,

@@ -20,15 +20,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from .fpnmodel import MAX_PARTS, MIN_PARTS, PART_PIXELS, Calibration
+from .scene import prepare
 from .scenemodel import fit_tile
-from .tiling import (
-    Tile,
-    checked_problem,
-    power_of_two_scale,
-    ramp,
-    solve_tiles,
-    tiles_of,
-)
+from .tiling import Tile, power_of_two_scale, ramp, solve_tiles
 
 
 @dataclass(frozen=True)
@@ -47,11 +41,7 @@ def render_many(problems, *, options, workers: int = 2, progress=None, executor=
     """The burst the scene model fitted to each of ``problems`` predicts (dicts as for
     :func:`solve.scene.solve_scene_many`, each with its own ``options`` if it has them), every tile
     fitted in one go; tiles overlap as the solver's and are blended by the same ramps."""
-    prepared = []
-    for p in problems:
-        frames, motion, exposures = checked_problem(p["frames"], p["motion"], p.get("excluded"), p.get("exposures"))
-        prepared.append(tiles_of(frames, p.get("excluded"), motion, p.get("saturation"), p.get("options", options),
-                                 exposures))
+    prepared = [prepare(p, options) for p in problems]
     shapes = iter([np.shape(p["frames"]) for p in problems])
     return solve_tiles(prepared, _render_tile, lambda tiles, results: _blend(tiles, results, next(shapes)),
                        workers=workers, progress=progress, executor=executor)

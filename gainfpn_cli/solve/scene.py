@@ -115,8 +115,7 @@ def solve_scene_many(problems, *, options: SceneOptions = SceneOptions(), worker
                      executor=None) -> list[GainResult]:
     """:func:`solve_scene` of each of ``problems`` (dicts as for :func:`solve.accurate.solve_accurate_many`,
     each with its own ``options`` if it has them), their tiles solved in one go."""
-    prepared = [_prepare(p["frames"], p["motion"], p.get("options", options), p.get("saturation"),
-                         p.get("excluded"), p.get("exposures")) for p in problems]
+    prepared = [prepare(p, options) for p in problems]
     shapes = iter([np.shape(p["frames"])[1:] for p in problems])
     return solve_tiles(prepared, _solve_tile, lambda tiles, results: _assemble(tiles, results, next(shapes)),
                        workers=workers, progress=progress, executor=executor)
@@ -129,11 +128,16 @@ def _assemble(tiles, results, shape) -> GainResult:
                                                     b.out_of_range_pixels, b.median_confidence))
 
 
-def _prepare(frames, motion, options: SceneOptions, saturation, excluded, exposures) -> list[Tile]:
+def prepare(problem: dict, options: SceneOptions) -> list[Tile]:
+    """The tiles of one of :func:`solve_scene_many`'s ``problems`` (its own ``options`` if it has them),
+    its inputs checked."""
+    options = problem.get("options", options)
+    excluded = problem.get("excluded")
     if options.scale < 1 or not 0 < options.aperture <= 1:
         raise ValueError(f"scale must be >= 1 and aperture in (0, 1], got {options.scale}, {options.aperture}")
-    frames, motion, exposures = checked_problem(frames, motion, excluded, exposures)
-    return tiles_of(frames, excluded, motion, saturation, options, exposures)
+    frames, motion, exposures = checked_problem(problem["frames"], problem["motion"], excluded,
+                                                problem.get("exposures"))
+    return tiles_of(frames, excluded, motion, problem.get("saturation"), options, exposures)
 
 
 def _solve_tile(tile: Tile) -> tuple[np.ndarray, np.ndarray, int]:

@@ -48,13 +48,20 @@ class Tile:
         not left out."""
         frames = self.frames.astype(np.float64)
         unit = power_of_two_scale(frames)
-        good = (frames > 0) & (frames < self.saturation)
-        if self.excluded is not None:
-            good &= ~self.excluded
+        good = usable(frames, self.saturation, self.excluded)
         frames /= unit
         if self.exposures is not None:
             frames /= np.asarray(self.exposures)[:, None, None]
         return frames, good
+
+
+def usable(frames: np.ndarray, saturation: float | None, excluded: np.ndarray | None) -> np.ndarray:
+    """Where readings can be used: above black, below the clipping level (None: nothing clips), not
+    left out (``excluded``, None: none)."""
+    good = (frames > 0) & (frames < (np.inf if saturation is None else saturation))
+    if excluded is not None:
+        good &= ~excluded
+    return good
 
 
 def tiles_of(frames: np.ndarray, excluded: np.ndarray | None, motion, saturation: float | None, options,
