@@ -14,6 +14,7 @@ from scipy import ndimage
 from gainfpn_cli import metrics
 from gainfpn_cli.geometry.resample import positions
 from gainfpn_cli.geometry.warps import GlobalWarp
+from gainfpn_cli.parallel import single_threaded_math
 from gainfpn_cli.sim.sensor import PRESETS
 from gainfpn_cli.sim.simulate import simulate_burst
 from gainfpn_cli.solve.accurate import solve_accurate
@@ -178,7 +179,8 @@ def test_noisy_burst_near_the_bound_with_an_honest_sigma():
 def test_tiles_give_the_same_map_for_one_and_two_workers():
     burst, _, frames = _paper_burst(1, noise=True)
     options = SceneOptions(tile=48, halo=8, steps=2, cg_iterations=10)
-    one = solve_scene(frames, burst.homographies, options=options, workers=1)
+    with single_threaded_math():  # as in the workers (and as pipeline.estimate runs it)
+        one = solve_scene(frames, burst.homographies, options=options, workers=1)
     two = solve_scene(frames, burst.homographies, options=options, workers=2)
     assert one.stats.tiles == 6
     np.testing.assert_array_equal(one.k, two.k)
