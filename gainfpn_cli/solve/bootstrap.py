@@ -22,7 +22,7 @@ import numpy as np
 from .fpnmodel import MAX_PARTS, MIN_PARTS, PART_PIXELS, Calibration
 from .scene import prepare
 from .scenemodel import fit_tile
-from .tiling import Tile, power_of_two_scale, ramp, solve_tiles
+from .tiling import Tile, power_of_two_scale, ramp_sums, solve_tiles
 
 
 @dataclass(frozen=True)
@@ -66,17 +66,8 @@ def _render_tile(tile: Tile) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def _blend(tiles: list[Tile], results, shape) -> Rendered:
-    readings, noise = np.zeros(shape, np.float32), np.zeros(shape, np.float32)
-    weight = np.zeros(shape, np.float32)
-    halo = tiles[0].options.halo
-    for i, tile in enumerate(tiles):
-        r, n, seen = results[i]
-        results[i] = None
-        w = ramp(r.shape[1:], (tile.y0, tile.x0), shape[1:], halo).astype(np.float32) * seen
-        sl = (slice(None), slice(tile.y0, tile.y0 + r.shape[1]), slice(tile.x0, tile.x0 + r.shape[2]))
-        readings[sl] += w * r
-        noise[sl] += w * n
-        weight[sl] += w
+    (readings, noise), weight = ramp_sums([(t.y0, t.x0) for t in tiles], results, lambda r: r[:2], lambda r: r[2],
+                                          shape, tiles[0].options.halo)
     seen = weight > 0
     return Rendered(np.divide(readings, weight, out=np.zeros(shape, np.float32), where=seen),
                     np.divide(noise, weight, out=np.zeros(shape, np.float32), where=seen), seen)

@@ -114,20 +114,10 @@ def blend(origins, results, shape: tuple[int, int], *, halo: int, gain_range: tu
     """Blend each tile's ``(k, confidence, iterations)`` at its ``(y0, x0)`` (``results`` freed as
     they are), leave gains outside ``gain_range`` unestimated and apply the gauge."""
     h, w = shape
-    # float32 plane-sized arrays (a 12 MP frame: 48 MB each)
-    k_sum = np.zeros((h, w), np.float32)
-    conf_sum = np.zeros((h, w), np.float32)
-    weight_sum = np.zeros((h, w), np.float32)
-    iterations = []
-    for i, (y0, x0) in enumerate(origins):
-        k, conf, its = results[i]
-        results[i] = None
-        weight = (ramp(k.shape, (y0, x0), (h, w), halo) * (conf > 0)).astype(np.float32)  # where it estimated
-        sl = (slice(y0, y0 + k.shape[0]), slice(x0, x0 + k.shape[1]))
-        k_sum[sl] += weight * k
-        conf_sum[sl] += weight * conf
-        weight_sum[sl] += weight
-        iterations.append(its)
+    iterations = [r[2] for r in results]
+    # where each tile estimated; float32 plane-sized sums (a 12 MP frame: 48 MB each)
+    (k_sum, conf_sum), weight_sum = ramp_sums(origins, results, lambda r: (r[0], r[1]), lambda r: r[1] > 0,
+                                              (h, w), halo)
     estimated = weight_sum > 0
     k = np.divide(k_sum, weight_sum, out=np.ones((h, w), np.float32), where=estimated)
     confidence = np.divide(conf_sum, weight_sum, out=np.zeros((h, w), np.float32), where=estimated)
@@ -142,6 +132,27 @@ def blend(origins, results, shape: tuple[int, int], *, halo: int, gain_range: tu
     k[~estimated] = 1.0
     return Blended(k.astype(np.float32), confidence.astype(np.float32), tuple(iterations),
                    int((~estimated).sum()), int(absurd.sum()), float(np.median(confidence[estimated])))
+
+
+def ramp_sums(origins, results, arrays, where, shape: tuple[int, ...], halo: int):
+    """The sums over tiles of ``arrays(result)`` (each ``shape``'s last two axes cropped to the tile),
+    weighted by the tile's :func:`ramp` where ``where(result)``, and the sum of those weights, all
+    float32 ``shape``; each tile's ``(y0, x0)`` in ``origins``, ``results`` freed as they are added."""
+    sums = None
+    weight_sum = np.zeros(shape, np.float32)
+    for i, (y0, x0) in enumerate(origins):
+        result = results[i]
+        results[i] = None
+        pieces = arrays(result)
+        if sums is None:
+            sums = [np.zeros(shape, np.float32) for _ in pieces]
+        th, tw = pieces[0].shape[-2:]
+        weight = (ramp((th, tw), (y0, x0), shape[-2:], halo) * where(result)).astype(np.float32)
+        sl = (..., slice(y0, y0 + th), slice(x0, x0 + tw))
+        for total, piece in zip(sums, pieces):
+            total[sl] += weight * piece
+        weight_sum[sl] += weight
+    return sums, weight_sum
 
 
 def checked_problem(frames, motion, excluded, exposures):
