@@ -203,10 +203,11 @@ def gain_information(weight, predicted, n: int) -> np.ndarray:
 
 
 def gauss_newton_step(A: _Sampling, gram, weight, residual, predicted, a, s, opt, *,
-                       priors: bool = True):
+                       priors: bool = True, iterations: int | None = None):
     """One Gauss-Newton step ``(ds, da)`` of the weighted squares plus priors, ``a`` eliminated, and
     the conjugate-gradient iterations it took. ``priors=False``: the step's response to ``residual``
-    alone (the priors' pull towards their centres left out, their weight kept)."""
+    alone (the priors' pull towards their centres left out, their weight kept). ``iterations``:
+    the conjugate-gradient cap if not ``opt.cg_iterations``."""
     n = a.size
     repeat = residual.size // n
     at = np.tile(a, repeat)
@@ -226,8 +227,8 @@ def gauss_newton_step(A: _Sampling, gram, weight, residual, predicted, a, s, opt
 
     rhs = grad_s - A.back(coupling * np.tile(grad_a / h_aa, repeat))
     diagonal = A.back_squared(data_ss) + lam * gram.diagonal()
-    ds, its = _pcg(schur, rhs, np.maximum(diagonal, 1e-12 * max(diagonal.max(), 1e-300)), opt.cg_iterations,
-                   opt.cg_rtol)
+    ds, its = _pcg(schur, rhs, np.maximum(diagonal, 1e-12 * max(diagonal.max(), 1e-300)),
+                   opt.cg_iterations if iterations is None else iterations, opt.cg_rtol)
     da = (grad_a - (coupling * A.forward(ds)).reshape(repeat, n).sum(axis=0)) / h_aa
     return ds, da, its
 
