@@ -150,41 +150,31 @@ def _estimate(burst: LoadedBurst, cfg: Config, solver: solving.Solver, progress:
 
     # the defects' readings are replaced from their neighbours while they are solved and checked
     with defective.repaired(frames, codes, burst.cfa, burst.channels):
-        t0 = time.perf_counter()
         n_fit = len(fit_frames)
+        t0 = time.perf_counter()
         solver, choice = solving.choose(burst, frames, excluded, exposures, slice(0, n_fit), in_frame, solver)
-        k, confidence, plane_reports, calibrations = solving.solve_planes(
-            burst, frames, excluded, exposures, slice(0, n_fit), in_frame, solver, progress,
-            split=cfg.motion.refine_rounds == 0)
-        for round_ in range(1, cfg.motion.refine_rounds + 1):
-            corrected, _ = motion_frames(frames * (k / np.float32(power_of_two_scale(frames[0])))[None], burst.cfa)
-            # the model is chosen again: on frames without their gain pattern the choice can change (a forced
-            # "layers" would also lose the base model auto chose for it)
-            ignore = reference_cells(excluded, corrected.shape[1:], burst.cfa)  # no corner on what the round masked
-            motion = estimate_motion(corrected, model=cfg.motion.model, ignore=ignore, exposures=exposures)
-            if cfg.motion.model != "auto":
-                _check_misfit(motion, names, S_motion)
-            reason = f"{motion.reason}; refined on frames corrected by k (round {round_})"
-            motion = dataclasses.replace(motion, reason=reason)
-            in_frame = motion.warp.conjugate(np.linalg.inv(S_motion))
-            excluded, moving = _moving(frames, corrected, motion.warp, burst.cfa, cfg, exposures)
-            del corrected
-            k, confidence, plane_reports, calibrations = solving.solve_planes(
-                burst, frames, excluded, exposures, slice(0, n_fit), in_frame, solver, progress,
-                split=round_ == cfg.motion.refine_rounds)  # measured once, on the final fit
-        timings["solve_s"] = time.perf_counter() - t0
-
-        holdout_report = None
+        chosen_s = time.perf_counter() - t0
+        fit = _Fit(motion, in_frame, excluded, moving)
+        held_out = burst.paths[order[-1]].name if holdout else None
+        tried = [_solve(burst, frames, exposures, n_fit, fit, dataclasses.replace(solver, method=method), cfg, names,
+                        S_motion, progress, held_out) for method in (choice.tried if holdout else ())]
+        if tried:  # the one the held-out frame confirms best (the lowest residual ratio with k over without),
+            # where it confirms the first (the accurate solver's) at all: on data that weak, with few frames, the
+            # scene solver's sigma_k is not calibrated (docs/limits.md)
+            confirmed = not tried[0].failed
+            solved = min(tried, key=lambda t: t.holdout.residual_ratio) if confirmed else tried[0]
+            choice = solving.tried(choice, {t.solver.method: t.holdout.residual_ratio for t in tried},
+                                   solved.solver.method, confirmed)
+        else:
+            solved = _solve(burst, frames, exposures, n_fit, fit, solver, cfg, names, S_motion, progress, held_out)
+        solver, fit, k, confidence = solved.solver, solved.fit, solved.k, solved.confidence
+        motion, in_frame, excluded, moving = fit.motion, fit.in_frame, fit.excluded, fit.moving
+        plane_reports, holdout_report = solved.reports, solved.holdout
+        timings["solve_s"] = chosen_s + sum(t.solve_s for t in tried or [solved])
         if holdout:
-            holdout_report, failed = solving.check(burst, frames, excluded, exposures, n_fit, in_frame, solver,
-                                                   plane_reports, calibrations, progress,
-                                                   burst.paths[order[-1]].name, k, confidence)
-            timings["holdout_s"] = time.perf_counter() - t0 - timings["solve_s"]
-            for grid in failed:
-                grid.scatter(k, np.ones(grid.shape, np.float32))
-                grid.scatter(confidence, np.zeros(grid.shape, np.float32))
-            if failed:
-                warnings.append(solving.rejection(holdout_report, failed))
+            timings["holdout_s"] = sum(t.holdout_s for t in tried or [solved])
+            if solved.failed:
+                warnings.append(solving.rejection(holdout_report, solved.failed))
     if codes is not None:  # no gain is known there; corrected frames repair them (output.repair)
         defective.leave_out(k, confidence, codes, burst.cfa, burst.channels)
     sigma = sigma_from_confidence(confidence)
@@ -220,6 +210,71 @@ def _estimate(burst: LoadedBurst, cfg: Config, solver: solving.Solver, progress:
         warnings=tuple(warnings),
     )
     return Estimate(k.astype(np.float32), confidence.astype(np.float32), report, codes)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Fit:
+    """The motion a solve runs on (a refine round replaces it): the warps, in frame pixels, and
+    the readings masked as moving with the share of the pixels they are."""
+
+    motion: object
+    in_frame: object
+    excluded: np.ndarray | None
+    moving: list[float] | None
+
+
+@dataclasses.dataclass(frozen=True)
+class _Solved:
+    """One solver's map, its planes' reports, the motion it ended on, and its hold-out check
+    (None without one) with the grids that check rejected (written k = 1)."""
+
+    solver: solving.Solver
+    k: np.ndarray
+    confidence: np.ndarray
+    reports: dict
+    fit: _Fit
+    holdout: object
+    failed: list
+    solve_s: float
+    holdout_s: float
+
+
+def _solve(burst, frames, exposures, n_fit: int, fit: _Fit, solver, cfg: Config, names, S_motion, progress,
+           held_out: str | None) -> _Solved:
+    """k and confidence from the first ``n_fit`` frames (with ``cfg.motion.refine_rounds`` rounds of
+    motion estimated again on the corrected frames), checked on the frame named ``held_out`` (None:
+    unchecked); the rejected grids written as k = 1, confidence 0."""
+    t0 = time.perf_counter()
+    motion, in_frame, excluded, moving = fit.motion, fit.in_frame, fit.excluded, fit.moving
+    k, confidence, plane_reports, calibrations = solving.solve_planes(
+        burst, frames, excluded, exposures, slice(0, n_fit), in_frame, solver, progress,
+        split=cfg.motion.refine_rounds == 0)
+    for round_ in range(1, cfg.motion.refine_rounds + 1):
+        corrected, _ = motion_frames(frames * (k / np.float32(power_of_two_scale(frames[0])))[None], burst.cfa)
+        # the model is chosen again: on frames without their gain pattern the choice can change (a forced
+        # "layers" would also lose the base model auto chose for it)
+        ignore = reference_cells(excluded, corrected.shape[1:], burst.cfa)  # no corner on what the round masked
+        motion = estimate_motion(corrected, model=cfg.motion.model, ignore=ignore, exposures=exposures)
+        if cfg.motion.model != "auto":
+            _check_misfit(motion, names, S_motion)
+        reason = f"{motion.reason}; refined on frames corrected by k (round {round_})"
+        motion = dataclasses.replace(motion, reason=reason)
+        in_frame = motion.warp.conjugate(np.linalg.inv(S_motion))
+        excluded, moving = _moving(frames, corrected, motion.warp, burst.cfa, cfg, exposures)
+        del corrected
+        k, confidence, plane_reports, calibrations = solving.solve_planes(
+            burst, frames, excluded, exposures, slice(0, n_fit), in_frame, solver, progress,
+            split=round_ == cfg.motion.refine_rounds)  # measured once, on the final fit
+    solve_s = time.perf_counter() - t0
+    holdout_report, failed = None, []
+    if held_out is not None:
+        holdout_report, failed = solving.check(burst, frames, excluded, exposures, n_fit, in_frame, solver,
+                                               plane_reports, calibrations, progress, held_out, k, confidence)
+        for grid in failed:
+            grid.scatter(k, np.ones(grid.shape, np.float32))
+            grid.scatter(confidence, np.zeros(grid.shape, np.float32))
+    return _Solved(solver, k, confidence, plane_reports, _Fit(motion, in_frame, excluded, moving), holdout_report,
+                   failed, solve_s, time.perf_counter() - t0 - solve_s)
 
 
 def _check_misfit(motion, names: list[str], S_motion: np.ndarray) -> None:

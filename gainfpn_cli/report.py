@@ -171,18 +171,20 @@ class Exposure:
 class SolverChoice:
     """The solver method used and why (``solver.method: auto`` chooses it from the burst's measured
     aliasing: the pairwise prediction error's excess over the noise, ``aliasing``; None where not
-    measured)."""
+    measured). ``tried``: the methods run before the hold-out frame chose (their residual ratios
+    in ``reason``); empty where one method was run."""
 
     method: str
     reason: str = ""
     aliasing: float | None = None
+    tried: tuple = ()
 
     def to_json(self) -> dict:
         return vars(self).copy()
 
     @classmethod
     def from_json(cls, data: dict) -> "SolverChoice":
-        return cls(**data)
+        return cls(**{**data, "tried": tuple(data.get("tried", ()))})
 
 
 @dataclass(frozen=True)

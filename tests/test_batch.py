@@ -169,7 +169,7 @@ def test_the_solver_runs_its_tiles_on_dask_bit_identically(bursts, cluster):
     from gainfpn_cli.parallel import DaskExecutor
     from gainfpn_cli.pipeline import estimate, load_burst
 
-    cfg = load_config(overrides={"solver.tile": 32})  # several tiles
+    cfg = load_config(overrides={"solver.tile": 32, "solver.method": "accurate"})  # several tiles
     burst = load_burst([bursts / "b1"], cfg)
     local = estimate(burst, cfg)
     remote = estimate(burst, cfg, executor=DaskExecutor(cluster))

@@ -210,7 +210,10 @@ def test_a_nearer_plane_is_corrected_through_its_own_layer(tmp_path):
     # issue 4: parallax. A disk over 10 % of the frame is a nearer plane (displaced twice as far as the
     # background). Measured, 160x200x6 dead leaves, seeds 2 / 3 / 4 (5 held out), MSE reduction over
     # the frame (on the disk): layers 4.7x (2.9x) / 6.0x (4.7x) / 7.6x (4.3x); one homography, its
-    # pixels masked where found, 1.4x (0.4x) / 2.8x (0.7x) / 4.1x (1.0x): the disk worse than none
+    # pixels masked where found, 1.4x (0.4x) / 2.8x (0.7x) / 4.1x (1.0x): the disk worse than none.
+    # The accurate solver's figures: on this aliased 5-frame fit auto tries both solvers and the
+    # hold-out keeps the scene solver (over the frame 10.1x against 9.0x; seeds 2 / 3: 6.2x against
+    # 5.0x, 8.0x against 6.2x), which estimates less of the disk's rim (docs/limits.md)
     burst = simulate_burst(shape=(160, 200), n_frames=6, seed=5, moving_object=0.1, parallax=1.0,
                            scene="dead-leaves")
     save_burst(burst, tmp_path, fmt="exr")
@@ -219,7 +222,7 @@ def test_a_nearer_plane_is_corrected_through_its_own_layer(tmp_path):
     disk = burst.moving[0] & interior
     ratios, on_disk = {}, {}
     for model in ("auto", "homography"):
-        cfg = load_config(overrides={"solver.workers": 1, "motion.model": model})
+        cfg = load_config(overrides={"solver.workers": 1, "motion.model": model, "solver.method": "accurate"})
         result = estimate(load_burst([tmp_path], cfg), cfg)
         k = result.k[..., 0]
         ratios[model] = metrics.mse(frame0, burst.ideal[0], interior) / metrics.mse(k * frame0, burst.ideal[0], interior)

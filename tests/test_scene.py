@@ -211,9 +211,10 @@ def test_estimate_with_the_scene_method(tmp_path, preset, size):
 def test_gains_are_not_shrunk_by_the_solver_on_a_dark_burst():
     # the FPN model shrinks k by its sigma_k; the solver must hand it k unshrunk, so its prior's pull
     # on each pixel's own a is taken back (not what the scene takes up through the modes a and S
-    # trade). Slope of k - 1 on the true 1/a - 1 over the darkest third of a 7.5 % exposure burst
-    # (median 10 DN), true motion: measured 0.84 (seeds 1-4: 0.83-0.87; 16 frames 0.90-0.94; 0.67
-    # with the pull left in, 0.96-1.00 with a prior of 50 % instead)
+    # trade), nor by what the scene takes up of the gains (divided out by the step's measured response
+    # to a gain pattern). Slope of k - 1 on the true 1/a - 1 over the darkest third of a 7.5 % exposure
+    # burst (median 10 DN), true motion, seeds 1-4: 0.96-1.01 (0.83-0.87 with the per-pixel pull taken
+    # back alone; 0.67 with the pull left in, 0.96-1.00 with a prior of 50 % instead)
     sensor = PRESETS["paper"]
     burst = simulate_burst(shape=(96, 128), n_frames=8, sensor=sensor, scene="dead-leaves", seed=3, exposure=0.075)
     result = solve_scene(burst.frames.astype(np.float32), burst.homographies, workers=1)
@@ -222,7 +223,7 @@ def test_gains_are_not_shrunk_by_the_solver_on_a_dark_burst():
     truth = 1 / burst.gain[dark]
     k = result.k[dark]
     slope = np.cov(k, truth)[0, 1] / np.var(truth, ddof=1)
-    assert 0.8 <= slope <= 1.1, slope
+    assert 0.9 <= slope <= 1.1, slope
 
 
 @pytest.mark.parametrize("fraction", [0.02, 0.125, 0.3, 0.45])
