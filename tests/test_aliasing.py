@@ -80,7 +80,7 @@ def test_with_few_frames_auto_keeps_the_solver_the_held_out_frame_confirms(expos
     # 4 fitted frames of an aliased burst: the latent scene's noise costs more than the aliasing on dark
     # bursts, so auto runs both solvers and the hold-out frame decides. Measured against the truth (MSE
     # ratio on a frame no fit sees), seeds 1-3: at 75 % the scene solver 8.8-10.3x, the accurate 5.0-5.8x,
-    # scene kept in all; at 15 % 1.95-2.15x against 2.13-2.23x, accurate kept in 2 of 3 (seed 1: the scene
+    # scene kept in all; at 15 % 1.94-2.14x against 2.13-2.23x, accurate kept in 2 of 3 (seed 1: the scene
     # solver, 0.96 of the accurate's)
     sensor = PRESETS["paper"]
     burst = simulate_burst(shape=(96, 128), n_frames=6, sensor=sensor, exposure=exposure, scene="dead-leaves",
