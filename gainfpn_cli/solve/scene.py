@@ -196,9 +196,9 @@ PROBE_ITERATIONS = 80
 
 
 #: Least share of a gain change the step is taken to give back (:func:`_gain_response`): below it
-#: the estimate is noise divided by nearly nothing. Measured medians 0.98-0.99 (96x128 dead leaves,
-#: 5 frames, 75 % exposure), 0.91-0.92 (15 %), 0.59-0.68 (240x320 camera, 5 frames, 7.5 %; 5 % of
-#: its pixels at this floor).
+#: the estimate is noise divided by nearly nothing. Measured medians 0.99 (96x128 dead leaves, 5
+#: frames, 75 % exposure, seeds 1-3), 0.93-0.94 (15 %), 0.70-0.75 (240x320 camera, 5 frames, 7.5 %;
+#: 0.3-6 % of a tile's pixels at this floor).
 MIN_GAIN_RESPONSE = 0.25
 
 
@@ -209,8 +209,8 @@ def _gain_response(fit, a, est, unpull, rng, opt) -> tuple[np.ndarray, int]:
     The step is driven by the readings' change under a random pattern ``a -> a (1 + d)``, ``d = +-1``
     per pixel; without priors it would return ``d`` exactly, but the gains' prior makes the latent
     scene take part of it up, which the per-pixel ``unpull`` does not restore. The fit's iterations
-    suffice here (80 as for the noise probe: dark 5-frame tenths 0.93-1.14 against 0.97-1.18 at 20,
-    MSE 0.5-1 % higher, for 1.18x the estimate's time at 640x480x8)."""
+    suffice here: 80, as for the noise probe, gave dark 5-frame tenths 0.93-1.14 against 0.97-1.18
+    and MSE ratios 0.5-1 % better, for 1.18x the estimate's time at 640x480x8."""
     n = a.size
     n_frames = fit.y.size // n
     pattern = rng.choice([-1.0, 1.0], size=n) * a
