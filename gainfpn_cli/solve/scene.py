@@ -180,9 +180,9 @@ def _solve_tile(tile: Tile) -> tuple[np.ndarray, np.ndarray, int]:
     black = (tile.frames <= 0) & seen
     sigma_k = _sigma(fit.residual, fitted, da, fit.variance, fit.weight, a, est, n_frames, black.any(axis=0))
     # ... and the share of their gain that readings near black do not see, times the gains' spread
-    response = _response(fit, black, seen, a)
-    if (response < 1).any():
-        sigma_k = np.sqrt(sigma_k**2 + (1 - response) ** 2 * _fpn_variance(k, sigma_k, response, est))
+    censored = _censored_per_pixel(fit, black, seen, a)
+    if (censored < 1).any():
+        sigma_k = np.sqrt(sigma_k**2 + (1 - censored) ** 2 * _fpn_variance(k, sigma_k, censored, est))
     confidence = np.where(est, confidence_from_sigma(sigma_k), 0.0)
     return k.astype(np.float32), confidence.astype(np.float32), iterations
 
@@ -242,7 +242,7 @@ def censored_response(black_fraction) -> np.ndarray:
     return np.where(f <= 0, 1.0, np.where(f >= 0.5, 0.0, response))
 
 
-def _response(fit, black, seen, a) -> np.ndarray:
+def _censored_per_pixel(fit, black, seen, a) -> np.ndarray:
     """Each pixel's :func:`censored_response`: the fraction of black among the readings (``seen``,
     ``(F, H, W)``) that see each scene sample, carried to the readings kept, averaged per pixel
     over its readings by their information on its gain."""
@@ -257,13 +257,14 @@ def _response(fit, black, seen, a) -> np.ndarray:
     return np.divide(followed, total, out=np.ones_like(total), where=total > 0).reshape(seen.shape[1:])
 
 
-def _fpn_variance(k, sigma_k, response, est) -> float:
+def _fpn_variance(k, sigma_k, followed, est) -> float:
     """The variance of the tile's gains, from its pixels whose readings follow half their gain or
-    more: ``k - 1`` there is ``response (1 / a - 1)`` plus an error of variance ``sigma_k^2``."""
-    use = est & np.isfinite(sigma_k) & (response > 0.5)
+    more (``followed``, :func:`censored_response` per pixel): ``k - 1`` there is ``followed (1 / a - 1)``
+    plus an error of variance ``sigma_k^2``."""
+    use = est & np.isfinite(sigma_k) & (followed > 0.5)
     if not use.any():
         return 0.0
-    return max(float(np.sum((k[use] - 1) ** 2 - sigma_k[use] ** 2) / np.sum(response[use] ** 2)), 0.0)
+    return max(float(np.sum((k[use] - 1) ** 2 - sigma_k[use] ** 2) / np.sum(followed[use] ** 2)), 0.0)
 
 
 def _sigma(residual, fitted, da, variance, weight, a, est, n_frames, at_black) -> np.ndarray:
