@@ -38,9 +38,13 @@ BURSTS = {
     "mono_exr": dict(shape=(96, 128), n_frames=6, seed=21, fmt="exr", sensor="paper"),
     "rggb_dng": dict(shape=(144, 176), n_frames=6, seed=22, fmt="dng", sensor="raw12"),
 }
-#: float32 k near 1: 1e-6 is a few ulps (6e-8 each), more than a reordered sum changes, far less
-#: than any change of method (the estimate's own error is ~1e-3 to 1e-2).
-ATOL = 1e-6
+#: How far k and confidence may be from a stored set. float32 k near 1: 1e-6 is a few ulps (6e-8
+#: each), more than a reordered sum changes, far less than any change of method (the estimate's own
+#: error is ~1e-3 to 1e-2). The confidence of a short burst is calibrated by a statistic of a second
+#: solve (solve/bootstrap.py), which carries a reordered sum further: the scene model's products
+#: summed in another order (2e-7 of a product) moved it by up to 1.5e-6 on the mono burst (k by
+#: 2.4e-7); 1e-5 is still far below any change of method.
+ATOL = {"k": 1e-6, "confidence": 1e-5}
 
 
 def cpu_kind() -> str:
@@ -80,9 +84,10 @@ def test_k_and_confidence_are_those_stored(name, tmp_path):
         stored = np.load(path)
         assert np.array_equal(stored["frames"], np.load(paths[0])["frames"]), path  # one input for all
         assert all(now[key].shape == stored[key].shape for key in ("k", "confidence")), path
-        off[path.parent.name] = max(float(np.abs(now[key].astype(np.float64) - stored[key]).max())
-                                    for key in ("k", "confidence"))
-    assert min(off.values()) <= ATOL, f"{name}: k or confidence off every stored set by (at most) {off}"
+        off[path.parent.name] = {key: float(np.abs(now[key].astype(np.float64) - stored[key]).max())
+                                 for key in ("k", "confidence")}
+    assert any(all(o[key] <= ATOL[key] for key in ATOL) for o in off.values()), \
+        f"{name}: k or confidence off every stored set by (at most) {off}"
 
 
 if __name__ == "__main__":  # write this CPU's arrays again, from the frames stored for any CPU

@@ -1,4 +1,4 @@
-"""The scene solver (solve/scene.py): its sampling kernel, its noise model, exact recovery when the
+"""The scene solver (solve/scene.py): its noise model, exact recovery when the
 data follow the model, and its error against the pairwise solver and the noise bound."""
 
 import dataclasses
@@ -7,8 +7,6 @@ import json
 import numpy as np
 import pytest
 from helpers import run_cli
-from hypothesis import given, settings
-from hypothesis import strategies as st
 from scipy import ndimage
 
 from gainfpn_cli import metrics
@@ -19,40 +17,27 @@ from gainfpn_cli.sim.sensor import PRESETS
 from gainfpn_cli.sim.simulate import simulate_burst
 from gainfpn_cli.solve.accurate import solve_accurate
 from gainfpn_cli.solve.result import sigma_from_confidence
+from gainfpn_cli.solve.sampling import sampling
 from gainfpn_cli.solve.scene import SceneOptions, censored_response, solve_scene
 from gainfpn_cli.solve.scenemodel import (
-    box_spline_weights,
+    add_smoothness,
     noise_variance,
-    observation_matrix,
+    smoothness_diagonal,
 )
 
 
-def test_box_of_a_linear_spline_known_answer():
-    # mean of the hat over [-1/2, 1/2] is 3/4, over [1/2, 1] (either neighbour) 1/8
-    taps, weights = box_spline_weights(np.array([5.0]), 1.0)
-    kept = weights[0] > 0
-    assert list(taps[0][kept]) == [4, 5, 6]
-    np.testing.assert_allclose(weights[0][kept], [0.125, 0.75, 0.125])
+@pytest.mark.parametrize("fine", [(5, 7), (1, 4), (6, 1)])
+def test_smoothness_is_the_gram_of_the_gradients(fine):
+    import scipy.sparse as sp
 
+    def diff(n):
+        return sp.diags([-np.ones(n - 1), np.ones(n - 1)], [0, 1], shape=(n - 1, n))
 
-@settings(max_examples=50, deadline=None)
-@given(u=st.floats(-50, 50), width=st.floats(0.25, 4.0))
-def test_box_weights_keep_constants_and_linear_functions(u, width):
-    # the box mean of a linear function is its value at the centre: the weights are a partition of
-    # unity with first moment u
-    taps, weights = box_spline_weights(np.array([u]), width)
-    assert weights.min() >= 0
-    assert weights.sum() == pytest.approx(1.0, abs=1e-12)
-    assert (weights * taps).sum() == pytest.approx(u, abs=1e-9)
-
-
-def test_observation_rows_average_the_scene_inside_and_are_empty_outside():
-    points = np.array([[3.2, 4.7], [0.0, 0.0], [-3.0, 5.0]])  # (x, y) grid px
-    A, inside = observation_matrix([points], (20, 20), 2, 1.0)
-    assert list(inside) == [True, False, False]  # the second's box reaches past the first sample
-    np.testing.assert_allclose(A @ np.ones(400), [1.0, 0.0, 0.0], atol=1e-12)
-    ramp = np.tile(np.arange(20.0), 20)  # scene value = fine column index = 2 x + 1/2
-    assert (A @ ramp)[0] == pytest.approx(2 * 3.2 + 0.5)
+    D = sp.vstack([sp.kron(diff(fine[0]), sp.eye(fine[1])), sp.kron(sp.eye(fine[0]), diff(fine[1]))])
+    v = np.random.default_rng(0).standard_normal(fine[0] * fine[1])
+    start = np.arange(v.size, dtype=np.float64)
+    np.testing.assert_allclose(add_smoothness(v, fine, 0.5, start.copy()), start + 0.5 * (D.T @ (D @ v)), atol=1e-12)
+    np.testing.assert_array_equal(smoothness_diagonal(fine), (D.T @ D).diagonal())
 
 
 def test_noise_model_is_recovered_from_residuals():
@@ -81,9 +66,9 @@ def _model_burst(seed=0, shape=(64, 80), n_frames=8, scale=2, aperture=1.0):
     fine = (scale * h, scale * w)
     scene = cv2.GaussianBlur(rng.uniform(0.3, 1.0, fine), (0, 0), 0.7)
     points = [positions(motion.pair(t, 0, (0, 0, h, w)), shape).reshape(-1, 2) for t in range(n_frames)]
-    A, inside = observation_matrix(points, fine, scale, aperture)
+    A, inside = sampling(points, fine, scale, aperture)
     gain = 1 + 0.02 * rng.standard_normal(h * w)
-    frames = 1000 * np.tile(gain, n_frames) * (A @ scene.ravel())
+    frames = 1000 * np.tile(gain, n_frames) * (A.sparse() @ scene.ravel())
     frames[~inside] = 0  # out of view: left out as dark
     return frames.reshape(n_frames, h, w).astype(np.float32), motion, gain.reshape(shape)
 

@@ -158,7 +158,7 @@ def _solve_tile(tile: Tile) -> tuple[np.ndarray, np.ndarray, int]:
     # (seeded by the tile's place, so that any worker draws the same)
     rng = np.random.default_rng([PROBE_SEED, tile.y0, tile.x0])
     probe = np.where(fit.weight > 0, rng.standard_normal(fit.y.size) * np.sqrt(fit.variance), 0.0)
-    ds, da, its = gauss_newton_step(fit.A, fit.gram, fit.weight, probe, fit.predicted, a, fit.s, opt, priors=False,
+    ds, da, its = gauss_newton_step(fit.A, fit.weight, probe, fit.predicted, a, fit.s, opt, priors=False,
                                     iterations=PROBE_ITERATIONS)
     iterations += its
     fitted = probe - np.tile(a, n_frames) * fit.A.forward(ds) - fit.predicted * np.tile(da, n_frames)
@@ -215,7 +215,7 @@ def _gain_response(fit, a, est, unpull, rng, opt) -> tuple[np.ndarray, int]:
     n_frames = fit.y.size // n
     pattern = rng.choice([-1.0, 1.0], size=n) * a
     drive = np.where(fit.weight > 0, np.tile(pattern, n_frames) * fit.predicted, 0.0)
-    _, given, its = gauss_newton_step(fit.A, fit.gram, fit.weight, drive, fit.predicted, a, fit.s, opt,
+    _, given, its = gauss_newton_step(fit.A, fit.weight, drive, fit.predicted, a, fit.s, opt,
                                       priors=False)
     given = (given * unpull * pattern).reshape(est.shape)
     total = window_sum(np.where(est, pattern.reshape(est.shape) ** 2, 0.0), 9)

@@ -1,6 +1,6 @@
-"""The scene model of the scene solver (docs/method.md section 8b): the sampling matrix ``B W_t`` of a
-tile's readings from a latent scene finer than its pixels, the noise model, and the fit of the scene
-``S`` and the gains ``a`` to the readings by Gauss-Newton (:func:`fit_tile`).
+"""The scene model of the scene solver (docs/method.md section 8b): the noise model and the fit of
+the scene ``S`` and the gains ``a`` to a tile's readings by Gauss-Newton (:func:`fit_tile`), through
+the sampling operator ``B W_t`` of :mod:`solve.sampling`.
 
 :mod:`solve.scene` turns a fit into k and its confidence; :mod:`solve.bootstrap` renders the burst a
 fit predicts. Pure array functions on one tile at a time.
@@ -14,6 +14,7 @@ import numpy as np
 
 from ..geometry.resample import positions
 from .frames import refine_frames
+from .sampling import Sampling, compiled, sampling
 from .tiling import Tile
 
 #: Median of a chi-square variable of one degree of freedom: a median of squared normal
@@ -21,57 +22,36 @@ from .tiling import Tile
 CHI2_MEDIAN = 0.4549364
 
 
-def box_spline_weights(u: np.ndarray, width: float) -> tuple[np.ndarray, np.ndarray]:
-    """Taps ``(n, m)`` and weights: the mean over ``[u - width/2, u + width/2]`` of the linear
-    spline through unit samples at the integers, for each of the ``n`` positions ``u``."""
-    m = int(np.ceil(width)) + 2
-    taps = np.floor(u - width / 2).astype(np.int64)[:, None] + np.arange(m)
-    lo = u[:, None] - width / 2 - taps
-    return taps, (_hat_integral(lo + width) - _hat_integral(lo)) / width
+def add_smoothness(v: np.ndarray, fine: tuple[int, int], weight: float, out: np.ndarray) -> np.ndarray:
+    """``out + weight * D^T D v``, ``D`` the forward differences of the ``fine`` grid along both axes."""
+    _add_smoothness(np.asarray(v, np.float64), fine[0], fine[1], float(weight), out)
+    return out
 
 
-def _hat_integral(x: np.ndarray) -> np.ndarray:
-    """``int_-inf^x max(0, 1 - |s|) ds``."""
-    x = np.clip(x, -1.0, 1.0)
-    return np.where(x < 0, (x + 1) ** 2 / 2, 1 - (1 - x) ** 2 / 2)
+def smoothness_diagonal(fine: tuple[int, int]) -> np.ndarray:
+    """The diagonal of ``D^T D``: each sample's number of neighbours on the ``fine`` grid."""
+    def along(n):
+        at = np.arange(n)
+        return (at > 0).astype(np.float64) + (at < n - 1)
+
+    return (along(fine[0])[:, None] + along(fine[1])[None, :]).reshape(-1)
 
 
-def observation_matrix(points: list[np.ndarray], fine: tuple[int, int], scale: int, aperture: float):
-    """The stacked sparse ``B W_t`` of every frame: row ``t * n + i`` is reading ``i`` of frame
-    ``t``, whose pixel sees the first frame at ``points[t][i] = (x, y)`` (grid px); columns are the
-    ``fine`` scene samples (row-major), sample ``j`` at grid coordinate ``(j - (scale-1)/2) / scale``.
-    Also whether each row's support lies inside the scene grid (the others are zero rows)."""
-    import scipy.sparse as sp
-
-    fh, fw = fine
-    width = scale * aperture
-    m = int(np.ceil(width)) + 2
-    offsets = (np.arange(m, dtype=np.int32)[:, None] * fw + np.arange(m, dtype=np.int32)).ravel()
-    data, indices, inside = [], [], []
-    for xy in points:
-        tu, wu = box_spline_weights(scale * xy[:, 0] + (scale - 1) / 2, width)
-        tv, wv = box_spline_weights(scale * xy[:, 1] + (scale - 1) / 2, width)
-        seen = (tu[:, 0] >= 0) & (tu[:, -1] < fw) & (tv[:, 0] >= 0) & (tv[:, -1] < fh)
-        corner = np.where(seen, tv[:, 0] * fw + tu[:, 0], 0).astype(np.int32)  # out of view: zero weights
-        indices.append((corner[:, None] + offsets).ravel())
-        wv = np.where(seen[:, None], wv, 0.0).astype(np.float32)
-        data.append((wv[:, :, None] * wu.astype(np.float32)[:, None, :]).ravel())
-        inside.append(seen)
-    n = sum(len(xy) for xy in points)
-    matrix = sp.csr_matrix((np.concatenate(data), np.concatenate(indices),
-                            np.arange(0, n * m * m + 1, m * m, dtype=np.int32)), shape=(n, fh * fw))
-    return matrix, np.concatenate(inside)
-
-
-def gradient_gram(fine: tuple[int, int]):
-    """``D^T D`` of the forward differences of a ``fine`` grid along both axes (sparse)."""
-    import scipy.sparse as sp
-
-    def diff(n):
-        return sp.diags([-np.ones(n - 1), np.ones(n - 1)], [0, 1], shape=(n - 1, n))
-
-    D = sp.vstack([sp.kron(diff(fine[0]), sp.eye(fine[1])), sp.kron(sp.eye(fine[0]), diff(fine[1]))])
-    return (D.T @ D).tocsr()
+@compiled
+def _add_smoothness(v, fh, fw, weight, out):
+    for y in range(fh):
+        for x in range(fw):
+            i = y * fw + x
+            change = 0.0
+            if x > 0:
+                change += v[i] - v[i - 1]
+            if x < fw - 1:
+                change += v[i] - v[i + 1]
+            if y > 0:
+                change += v[i] - v[i - fw]
+            if y < fh - 1:
+                change += v[i] - v[i + fw]
+            out[i] += weight * change
 
 
 def noise_variance(residuals: np.ndarray, predicted: np.ndarray, bins: int = 8) -> tuple[float, float]:
@@ -113,8 +93,7 @@ class SceneFit:
     noise: tuple | None
     exposure: np.ndarray
     est: np.ndarray
-    A: object
-    gram: object
+    A: Sampling
     iterations: int
 
 
@@ -126,8 +105,7 @@ def fit_tile(tile: Tile) -> SceneFit | None:
     region = (tile.y0, tile.x0, h, w)
     fine = (opt.scale * h, opt.scale * w)
     points = [positions(tile.motion.pair(t, 0, region), (h, w)).reshape(-1, 2) for t in range(n_frames)]
-    A, inside = observation_matrix(points, fine, opt.scale, opt.aperture)
-    A = _Sampling(A)
+    A, inside = sampling(points, fine, opt.scale, opt.aperture)
     valid = good.reshape(-1) & inside
     y = np.where(valid, frames.reshape(-1), 0.0)
     seen = valid.reshape(n_frames, -1).sum(axis=0)
@@ -137,7 +115,6 @@ def fit_tile(tile: Tile) -> SceneFit | None:
 
     s = _mean_along(A, valid.astype(np.float64), y, valid)
     a = np.ones(h * w)
-    gram = gradient_gram(fine)
     iterations = 0
     noise = (np.var(y[valid]) * 1e-4, 0.0)  # the first step: uniform weights
     exposure = np.ones(n_frames)
@@ -170,12 +147,12 @@ def fit_tile(tile: Tile) -> SceneFit | None:
         weight = valid / variance
         if step > 0 and opt.robust_scale is not None:
             weight /= 1.0 + residual**2 / (opt.robust_scale**2 * variance)
-        ds, da, its = gauss_newton_step(A, gram, weight, residual, predicted, a, s, opt)
+        ds, da, its = gauss_newton_step(A, weight, residual, predicted, a, s, opt)
         s += ds
         a += da
         iterations += its
         step += 1
-    return SceneFit(y, valid, predicted, a, s, weight, variance, residual, fitted, exposure, est, A, gram, iterations)
+    return SceneFit(y, valid, predicted, a, s, weight, variance, residual, fitted, exposure, est, A, iterations)
 
 
 
@@ -188,11 +165,11 @@ def _mean_along(A, weight, y, valid):
 def _moved(points, moves, exposure, gains, frames, good, fine, opt):
     """``(points, exposure, A, valid, y)`` of a tile after :func:`refine_frames`' moves and gains."""
     points = [xy + d for xy, d in zip(points, moves)]
-    matrix, inside = observation_matrix(points, fine, opt.scale, opt.aperture)
+    A, inside = sampling(points, fine, opt.scale, opt.aperture)
     valid = good.reshape(-1) & inside
     exposure = exposure * gains
     y = np.where(valid, (frames / exposure[:, None, None]).reshape(-1), 0.0)
-    return points, exposure, _Sampling(matrix), valid, y
+    return points, exposure, A, valid, y
 
 
 
@@ -202,8 +179,8 @@ def gain_information(weight, predicted, n: int) -> np.ndarray:
     return (weight * predicted**2).reshape(-1, n).sum(axis=0)
 
 
-def gauss_newton_step(A: _Sampling, gram, weight, residual, predicted, a, s, opt, *,
-                       priors: bool = True, iterations: int | None = None):
+def gauss_newton_step(A: Sampling, weight, residual, predicted, a, s, opt, *, priors: bool = True,
+                      iterations: int | None = None):
     """One Gauss-Newton step ``(ds, da)`` of the weighted squares plus priors, ``a`` eliminated, and
     the conjugate-gradient iterations it took. ``priors=False``: the step's response to ``residual``
     alone (the priors' pull towards their centres left out, their weight kept). ``iterations``:
@@ -214,44 +191,45 @@ def gauss_newton_step(A: _Sampling, gram, weight, residual, predicted, a, s, opt
     lam = opt.smoothness * float(np.median(weight[weight > 0]))
     prior = 1.0 / opt.gain_prior**2
     wr = weight * residual
-    grad_s = A.back(at * wr) - (lam * (gram @ s) if priors else 0.0)
+    grad_s = A.back(at * wr)
+    if priors:
+        add_smoothness(s, A.fine, -lam, grad_s)
     grad_a = (predicted * wr).reshape(repeat, n).sum(axis=0) - (prior * (a - 1.0) if priors else 0.0)
-    h_aa = gain_information(weight, predicted, n) + prior
+    inverse_haa = 1.0 / (gain_information(weight, predicted, n) + prior)
     coupling = weight * at * predicted  # rows of H_sa = A^T diag(w a P), per reading
     data_ss = weight * at**2
+    u, z = np.empty(residual.size), np.empty(residual.size)
 
     def schur(v):
-        u = A.forward(v)
-        back = (coupling * u).reshape(repeat, n).sum(axis=0) / h_aa
-        return A.back(data_ss * u - coupling * np.tile(back, repeat)) + lam * (gram @ v)
+        A.forward(v, u)
+        _eliminated(u, coupling, data_ss, inverse_haa, z)
+        return add_smoothness(v, A.fine, lam, A.back(z))
 
-    rhs = grad_s - A.back(coupling * np.tile(grad_a / h_aa, repeat))
-    diagonal = A.back_squared(data_ss) + lam * gram.diagonal()
+    rhs = A.back(-coupling * np.tile(grad_a * inverse_haa, repeat), grad_s)
+    diagonal = A.back_squared(data_ss) + lam * smoothness_diagonal(A.fine)
     ds, its = _pcg(schur, rhs, np.maximum(diagonal, 1e-12 * max(diagonal.max(), 1e-300)),
                    opt.cg_iterations if iterations is None else iterations, opt.cg_rtol)
-    da = (grad_a - (coupling * A.forward(ds)).reshape(repeat, n).sum(axis=0)) / h_aa
+    da = (grad_a - (coupling * A.forward(ds)).reshape(repeat, n).sum(axis=0)) * inverse_haa
     return ds, da, its
 
 
-class _Sampling:
-    """The observation matrix in float32 (the products are most of the solve's time, and bound by
-    memory traffic), its transpose and its squared transpose; vectors in and out float64."""
-
-    def __init__(self, matrix):
-        self.matrix = matrix.astype(np.float32, copy=False)
-        self.transpose = self.matrix.T.tocsr()
-        self.squared = self.transpose.copy()
-        self.squared.data **= 2
-
-    def forward(self, v):
-        return (self.matrix @ v.astype(np.float32)).astype(np.float64)
-
-    def back(self, r):
-        return (self.transpose @ r.astype(np.float32)).astype(np.float64)
-
-    def back_squared(self, r):
-        """``(A * A)^T r``: the diagonal of ``A^T diag(r) A``."""
-        return (self.squared @ r.astype(np.float32)).astype(np.float64)
+@compiled
+def _eliminated(u, coupling, data_ss, inverse_haa, z):
+    """``z = D u - c (c^T u) / h`` per pixel: the readings' part of the Schur complement's product,
+    ``a`` eliminated (``c``: the coupling, ``D``: the scene's data weights, ``h``: a's information;
+    readings frame-major)."""
+    n = inverse_haa.size
+    n_frames = u.size // n
+    shared = np.zeros(n)
+    for t in range(n_frames):
+        for p in range(n):
+            shared[p] += coupling[t * n + p] * u[t * n + p]
+    for p in range(n):
+        shared[p] *= inverse_haa[p]
+    for t in range(n_frames):
+        for p in range(n):
+            i = t * n + p
+            z[i] = data_ss[i] * u[i] - coupling[i] * shared[p]
 
 
 def _pcg(operator, rhs, diagonal, iterations: int, rtol: float):
