@@ -235,9 +235,9 @@ def test_censored_response_at_its_ends():
 
 @pytest.mark.parametrize("seed", [1, 2, 3])
 def test_sigma_is_honest_with_four_frames_to_spare(seed):
-    # 5 frames, a latent scene of 4 samples per pixel: the noise probe's step converged (80
+    # 5 frames, a latent scene of 4 samples per pixel: the noise probe's step nearly converged (60
     # iterations) predicts k's error; at the fit's 20 the lowest fifth erred 1.28-1.41x its
-    # prediction (seeds 1, 3). Measured quintiles at 80: 0.77-1.04, 0.77-0.98, 0.80-1.00
+    # prediction (seeds 1, 3). Measured quintiles at 60: 0.79-1.05, 0.77-1.00, 0.81-1.01
     burst = simulate_burst(shape=(96, 128), n_frames=5, sensor=PRESETS["paper"], scene="dead-leaves", seed=seed)
     frames = burst.frames.astype(np.float32) - PRESETS["paper"].black_level
     result = solve_scene(frames, burst.homographies, workers=1)

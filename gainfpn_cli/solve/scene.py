@@ -191,8 +191,9 @@ def _solve_tile(tile: Tile) -> tuple[np.ndarray, np.ndarray, int]:
 PROBE_SEED = 20261124
 #: Conjugate-gradient iterations of the probe's step: at the fit's 20 its da is 23 % off the
 #: converged one (11 % at 40), and sigma_k under-predicts by up to 1.6x at 4 fitted frames
-#: (240x320 dead leaves, seeds 3-5: tenths 1.13-1.64 at 20, 0.87-1.21 at 80 and at 160)
-PROBE_ITERATIONS = 80
+#: (240x320 dead leaves, seeds 3-5: tenths 1.13-1.64 at 20, 0.85-1.27 at 40, 0.83-1.20 at 60,
+#: 0.82-1.19 at 80)
+PROBE_ITERATIONS = 60
 
 
 #: Least share of a gain change the step is taken to give back (:func:`_gain_response`): below it
