@@ -30,6 +30,7 @@ def add_smoothness(v: np.ndarray, fine: tuple[int, int], weight: float, out: np.
 
 def smoothness_diagonal(fine: tuple[int, int]) -> np.ndarray:
     """The diagonal of ``D^T D``: each sample's number of neighbours on the ``fine`` grid."""
+
     def along(n):
         at = np.arange(n)
         return (at > 0).astype(np.float64) + (at < n - 1)
