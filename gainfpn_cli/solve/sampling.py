@@ -62,7 +62,8 @@ class Sampling:
             out[:] = product
             return out
         out = np.empty(self.corner.size) if out is None else out
-        (_forward_three if self.wu.shape[1] == 3 else _forward_four)(self.corner, self.wu, self.wv, self.fine[1], np.asarray(v, np.float64), out)
+        loop = _forward_three if self.wu.shape[1] == 3 else _forward_four
+        loop(self.corner, self.wu, self.wv, self.fine[1], np.asarray(v, np.float64), out)
         return out
 
     def back(self, r: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
@@ -110,7 +111,8 @@ class Sampling:
             out += product
             return out
         out = np.zeros(self.shape[1]) if out is None else out
-        (_back_three if wu.shape[1] == 3 else _back_four)(self.corner, wu, wv, self.fine[1], np.asarray(r, np.float64), out)
+        loop = _back_three if wu.shape[1] == 3 else _back_four
+        loop(self.corner, wu, wv, self.fine[1], np.asarray(r, np.float64), out)
         return out
 
 
@@ -152,9 +154,10 @@ def _jit(function):
     return njit(cache=True, nogil=True, fastmath=True)(function)
 
 
-# The loops, unrolled over a row's columns, with reassociation allowed (fastmath: 3.9 ms against
-# 4.6 ms without on the tile above). A loop over blocks of 4 for wider supports was slower than the
-# CSR product (6 a side: 45 ms against 27 ms), hence the CSR there.
+# The loops, unrolled over a row's columns, with reassociation allowed (fastmath: forward 4.2 ms
+# against 4.9 ms without on the tile of docs/bench/sampling.py, back alike). A loop over blocks of 4
+# (zero-padded) for wider supports was slower than the CSR product at 6 a side (45 ms against 27 ms,
+# one run), hence the CSR there.
 
 @compiled
 def _forward_four(corner, wu, wv, fw, v, out):
