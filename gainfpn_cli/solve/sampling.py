@@ -55,7 +55,7 @@ class Sampling:
 
     def forward(self, v: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """``A v``: each reading's value of the fine scene ``v`` (into ``out`` if given)."""
-        if not self._compiled:
+        if not self._looped:
             product = (self._csr[0] @ v.astype(np.float32)).astype(np.float64)
             if out is None:
                 return product
@@ -97,14 +97,14 @@ class Sampling:
         return sp.csr_matrix((data[keep], columns[keep], indptr), shape=self.shape)
 
     @property
-    def _compiled(self) -> bool:
+    def _looped(self) -> bool:
         """Whether the compiled loops apply: a support they are written for, on a grid at least as
         large (rows out of view read the first samples)."""
         m = self.wu.shape[1]
         return m in COMPILED and min(self.fine) >= m
 
     def _back(self, wu, wv, r, power: int, out) -> np.ndarray:
-        if not self._compiled:
+        if not self._looped:
             product = (self._csr[power] @ r.astype(np.float32)).astype(np.float64)
             if out is None:
                 return product
