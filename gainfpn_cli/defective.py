@@ -25,9 +25,13 @@ def find(frames: np.ndarray, cfa: str | None, channels: tuple[str, ...], *, excl
     """The defect map of a burst ``frames`` ``(F, H, W, C)`` (DN after black, reference first),
     ``warp`` its motion in frame pixels, ``excluded`` ``(F, H, W)`` the readings of moving objects,
     ``dark_hot`` ``(H, W, C)`` the hot photosites a dark frame shows (:func:`hot_in_dark`)."""
-    if saturation is not None:
-        clipped = (frames >= saturation).any(axis=-1)
-        excluded = clipped if excluded is None else excluded | clipped
+    if saturation is not None:  # a frame at a time: a mask of the stack's channels is 192 MB at 12 MP x 16
+        clipped = np.empty(frames.shape[:-1], bool)
+        for t, frame in enumerate(frames):
+            np.any(frame >= saturation, axis=-1, out=clipped[t])
+        if clipped.any():
+            excluded = clipped if excluded is None else excluded | clipped
+        del clipped
     codes = np.zeros(frames.shape[1:], np.uint8)
     mask = None if excluded is None else np.broadcast_to(excluded[..., None], frames.shape)
     for name, pick, S in plane_views(cfa, channels):

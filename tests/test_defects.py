@@ -78,11 +78,12 @@ def test_stuck_photosites_are_found_in_frames_of_different_exposures():
 
 
 def test_strips_of_rows_change_nothing(monkeypatch):
-    # the per-photosite medians run STRIP_ROWS rows at a time (memory): any strip height, the same codes
+    # the per-photosite statistics run a strip of STRIP_READINGS readings at a time (memory): any strip
+    # height, the same codes (here 7 rows of the 6 frames, and 1 row for the offset fit's quarter strips)
     burst = simulate_burst(shape=(120, 160), n_frames=6, sensor=MONO, scene="dead-leaves", exposure=0.15,
                            defects=0.01, seed=3)
     whole = _codes(burst, MONO)
-    monkeypatch.setattr(D, "STRIP_ROWS", 7)
+    monkeypatch.setattr(D, "STRIP_READINGS", 7 * 6 * 160)
     assert np.count_nonzero(whole) > 100 and np.array_equal(_codes(burst, MONO), whole)
 
 

@@ -41,6 +41,7 @@ error scatters a healthy photosite's readings as much (docs/limits.md).
 from __future__ import annotations
 
 import warnings
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -105,9 +106,10 @@ MIN_LEVEL = 0.02
 LEVEL_STEPS = 3.0
 #: Interpolation of the frames onto the reference grid and of the median scene back.
 KERNEL = "cubic"
-#: Rows of a plane the per-photosite medians work on at a time: their temporaries are a strip's,
-#: not a frame stack's (768 MB at 12 MP x 16 frames each).
-STRIP_ROWS = 256
+#: Readings (frames x photosites) of the strip of rows the per-photosite statistics work on at a time:
+#: each of their temporaries is then 16 MB of float32 whatever the frame size, not a frame stack's
+#: (768 MB at 12 MP x 16 frames).
+STRIP_READINGS = 2**22
 
 
 def detect(frames: np.ndarray, warp, *, saturation: float | None = None,
@@ -121,18 +123,24 @@ def detect(frames: np.ndarray, warp, *, saturation: float | None = None,
     it (moving objects). Fewer than :data:`MIN_FRAMES` frames: all healthy.
     """
     read = np.asarray(frames, np.float32)
-    frames = read if exposures is None else read / np.asarray(exposures, np.float32)[:, None, None]
+    frames = read if exposures is None else _Relative(read, np.asarray(exposures, np.float32))
     n_frames, h, w = frames.shape
     codes = np.zeros((h, w), np.uint8)
     if n_frames < MIN_FRAMES:
         return codes
-    good = frames < (np.inf if saturation is None else saturation)
-    if excluded is not None:
-        good &= ~excluded
+
+    def good(t: int) -> np.ndarray:  # frame t's readings below saturation that follow the motion
+        below = frames[t] < (np.inf if saturation is None else saturation)
+        return below if excluded is None else below & ~excluded[t]
+
     x, valid, from_frames = _predictions(frames, good, warp)
     step = _quantisation_step(read)
-    floor = max(MIN_LEVEL * float(np.quantile(x[valid], 0.99)) if valid.any() else 0.0, LEVEL_STEPS * step)
+    # (the masked copy sorted in place: one copy of the stack's valid readings, not two)
+    floor = max(MIN_LEVEL * float(np.quantile(x[valid], 0.99, overwrite_input=True)) if valid.any() else 0.0,
+                LEVEL_STEPS * step)
     usable = valid & (x > floor)
+    always = valid.all(axis=0)  # every reading usable as far as the frames and the motion go
+    del valid  # frame-stack-sized, as usable and from_frames are
     response, scatter, n, lowest, highest = _responses(frames, x, usable)
     tested = n >= MIN_FRAMES
     if not tested.any():
@@ -146,11 +154,12 @@ def detect(frames: np.ndarray, warp, *, saturation: float | None = None,
     local = _local_median(np.where(tested, scatter, 0.0))
     own = np.pi / 2 * np.maximum(scatter, local) ** 2 / np.maximum(n, 1)
     z = np.where(tested, (response - typical) / np.sqrt(spread**2 + own + 1e-30), 0.0)
+    del local, own
 
     dead = tested & (response < DEAD_RESPONSE * typical) & (highest < DEAD_CEILING * typical) & (z < -Z_DEFECT)
     whole = usable.all(axis=0) & ~dead
     noise = _noise_model(*_level_and_scatter(frames, x, response, whole), n_frames)
-    stuck = ~dead & _stuck(frames, read, good, x, valid, typical, noise, step)
+    stuck = ~dead & _stuck(frames, read, always, x, typical, noise, step)
     usable &= from_frames  # from here on, only readings the other frames predict
     hot = (z > np.where(usable.sum(axis=0) >= MIN_FRAMES, Z_DEFECT, BORDER_Z * Z_DEFECT)) & (lowest > typical)
     if n_frames >= MIN_FIT_FRAMES:
@@ -161,33 +170,57 @@ def detect(frames: np.ndarray, warp, *, saturation: float | None = None,
     return codes
 
 
-def _predictions(frames: np.ndarray, good: np.ndarray, warp) -> tuple[np.ndarray, ...]:
+@dataclass(frozen=True)
+class _Relative:
+    """Frames brought to the reference's exposure, ``read / exposures``, divided a frame (``[t]``) or a
+    strip of rows (``[:, rows]``) at a time as they are used: the divided stack would be another
+    768 MB at 12 MP x 16 frames, on top of the read one. It stands in for the stack wherever the
+    helpers below take the frames divided (``frames``, ``y``)."""
+
+    read: np.ndarray  # (F, H, W) float32
+    exposures: np.ndarray  # (F,) float32
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return self.read.shape
+
+    def __getitem__(self, key):
+        if isinstance(key, (int, np.integer)):
+            return self.read[key] / self.exposures[key]
+        if not (isinstance(key, tuple) and key[0] == slice(None)):
+            raise IndexError("a frame [t] or every frame's rows [:, rows]")
+        return self.read[key] / self.exposures[:, None, None]
+
+
+def _predictions(frames: np.ndarray, good, warp) -> tuple[np.ndarray, ...]:
     """The scene each photosite sees in each frame, ``(F, H, W)``, where it is known, and where it
     is predicted from the other frames: the median of the frames on the reference's grid brought
     back, or at the borders (fewer than :data:`MIN_FRAMES` frames on the point) the median of the
-    8 neighbours in the frame."""
+    8 neighbours in the frame. ``good(t)`` gives frame ``t``'s usable readings (a frame at a time:
+    a mask of the stack would be another 192 MB at 12 MP x 16 frames)."""
     n_frames, h, w = frames.shape
     region = (0, 0, h, w)
     on_ref = np.full((n_frames, h, w), np.nan, np.float32)
     for t in range(n_frames):
         M = warp.pair(0, t, region)
-        ok = valid_samples(good[t], M, (h, w), kernel=KERNEL)
+        ok = valid_samples(good(t), M, (h, w), kernel=KERNEL)
         on_ref[t][ok] = sample(frames[t], M, (h, w), kernel=KERNEL)[ok]
     seen = np.isfinite(on_ref).sum(axis=0) >= MIN_FRAMES
     scene = np.where(seen, nan_median(on_ref), 0).astype(np.float32)  # all-NaN points: not known
     del on_ref
-    x = np.empty_like(frames)
+    x = np.empty(frames.shape, np.float32)
     valid = np.empty(frames.shape, bool)
     from_frames = np.empty(frames.shape, bool)
     for t in range(n_frames):
         M = warp.pair(t, 0, region)
         x[t] = sample(scene, M, (h, w), kernel=KERNEL)
         from_frames[t] = known = valid_samples(seen, M, (h, w), kernel=KERNEL)
-        valid[t] = good[t] & known
+        readable = good(t)
+        valid[t] = readable & known
         border = np.nonzero(~known)  # the 8 neighbours' median only where the frames do not see the point
-        around, count = _ring_median(frames[t], good[t], border)
+        around, count = _ring_median(frames[t], readable, border)
         x[t][border] = np.nan_to_num(around)
-        valid[t][border] = good[t][border] & (count >= MIN_NEIGHBOURS)  # edges of the frame have 3 or 5
+        valid[t][border] = readable[border] & (count >= MIN_NEIGHBOURS)  # edges of the frame have 3 or 5
     return x, valid, from_frames
 
 
@@ -202,9 +235,9 @@ def _ring_median(values: np.ndarray, known: np.ndarray, at: tuple[np.ndarray, np
 
 def _responses(y: np.ndarray, x: np.ndarray, usable: np.ndarray) -> tuple[np.ndarray, ...]:
     """Per photosite: the median over frames of ``y / x``, its robust scatter, the count, the
-    lowest and the highest (:data:`STRIP_ROWS` rows at a time)."""
+    lowest and the highest (a strip of :data:`STRIP_READINGS` readings at a time)."""
     out = [np.zeros(y.shape[1:], np.float32) for _ in range(4)]
-    for rows in _strips(y.shape[1]):
+    for rows in _strips(y.shape):
         with np.errstate(divide="ignore", invalid="ignore"):
             ratio = np.where(usable[:, rows], y[:, rows] / x[:, rows], np.float32(np.nan))
         response = nan_median(ratio)
@@ -229,16 +262,16 @@ def _offset_scores(y: np.ndarray, x: np.ndarray, fitted: np.ndarray, typical: fl
     prediction's error around it (the 5x5 median of the ratios' ``scatter`` over the frames times
     the level); the frames are Cauchy-weighted by their residuals about a robust start (the
     plane's gain, the median offset), and the error is scaled up by the fit's own scatter where
-    that is larger. A quarter of :data:`STRIP_ROWS` rows at a time."""
+    that is larger. A quarter of :data:`STRIP_READINGS` readings at a time."""
     count = fitted.sum(axis=0)
     level = np.zeros(count.shape, np.float32)
-    for rows in _strips(y.shape[1]):
+    for rows in _strips(y.shape):
         level[rows] = np.where(fitted[:, rows], x[:, rows], 0).sum(axis=0) / np.maximum(count[rows], 1)
     var = np.maximum(noise(level), _local_median(scatter * level) ** 2).astype(np.float32)
     root_weight = 1.0 / np.sqrt(np.maximum(var, 1e-12))  # noise-free data: no zero division
     prior = 1.0 / max(spread, 1e-6) ** 2
     score = np.zeros(count.shape)
-    for rows in _strips(y.shape[1], max(1, STRIP_ROWS // 4)):  # a dozen temporaries of a strip's stack
+    for rows in _strips(y.shape, STRIP_READINGS // 4):  # a dozen temporaries of a strip's stack
         use = fitted[:, rows]
         ys, xs = np.where(use, y[:, rows], np.float32(0)), np.where(use, x[:, rows], np.float32(0))
         root = use * (root_weight[rows] / CAUCHY_SCALE)  # z / c of a residual: residual x root
@@ -257,24 +290,34 @@ def _offset_scores(y: np.ndarray, x: np.ndarray, fitted: np.ndarray, typical: fl
     if not tested.any():
         return np.zeros(count.shape)
     centre, _, scale = _robust_spread(score, tested)
-    return np.where(tested, (score - centre) / np.maximum(scale, 1e-12), 0.0)
+    score -= centre
+    score /= np.maximum(scale, 1e-12, out=scale)
+    score[~tested] = 0.0
+    return score
 
 
 def _robust_spread(values: np.ndarray, tested: np.ndarray) -> tuple[float, float, np.ndarray]:
     """The median of ``values`` over the ``tested`` photosites, their robust spread (MAD), and
     per photosite that spread or, where larger, the robust spread of the tested values about the
     median over its 5x5 neighbourhood."""
-    centre = float(np.median(values[tested]))
-    spread = MAD_TO_SIGMA * float(np.median(np.abs(values[tested] - centre)))
-    around = MAD_TO_SIGMA * _local_median(np.where(tested, np.abs(values - centre), 0.0))
-    return centre, spread, np.maximum(spread, around)
+    picked = values[tested]  # (in place from here: each temporary is a plane's, 96 MB at 12 MP in float64)
+    centre = float(np.median(picked, overwrite_input=True))
+    np.abs(np.subtract(picked, centre, out=picked), out=picked)
+    spread = MAD_TO_SIGMA * float(np.median(picked, overwrite_input=True))
+    del picked
+    deviation = np.abs(np.subtract(values, centre, dtype=values.dtype), dtype=values.dtype)
+    deviation[~tested] = 0.0
+    around = _local_median(deviation)
+    del deviation
+    around *= MAD_TO_SIGMA
+    return centre, spread, np.maximum(spread, around, out=around)
 
 
 def _level_and_scatter(y: np.ndarray, x: np.ndarray, response: np.ndarray, where: np.ndarray):
     """At the photosites ``where``: the mean predicted scene over the frames, and the variance
     (n - 1 degrees of freedom) of the readings about ``response`` times it."""
     level, scatter = [], []
-    for rows in _strips(y.shape[1]):
+    for rows in _strips(y.shape):
         inside = where[rows]
         xs = x[:, rows][:, inside]
         level.append(xs.mean(axis=0))
@@ -282,20 +325,22 @@ def _level_and_scatter(y: np.ndarray, x: np.ndarray, response: np.ndarray, where
     return np.concatenate(level), np.concatenate(scatter)
 
 
-def _strips(h: int, rows: int | None = None):
-    """Slices of ``rows`` (:data:`STRIP_ROWS`) rows covering ``h``."""
-    rows = rows or STRIP_ROWS
+def _strips(shape: tuple[int, ...], readings: int | None = None) -> list[slice]:
+    """Slices of rows covering a stack of ``shape`` ``(F, H, W)``, each of at most ``readings``
+    (:data:`STRIP_READINGS`) readings, and one row at least."""
+    n_frames, h, w = shape
+    rows = max(1, (readings or STRIP_READINGS) // max(n_frames * w, 1))
     return [slice(y0, min(y0 + rows, h)) for y0 in range(0, h, rows)]
 
 
 def nan_median(stack: np.ndarray) -> np.ndarray:
     """``np.nanmedian(stack, axis=0)`` (NaN where every value is), by one sort along the short
     axis: NumPy's goes through masked arrays for a short axis, 10x slower on a frame stack.
-    :data:`STRIP_ROWS` rows of the other axes at a time, so that the sort's copy stays small."""
+    A strip of :data:`STRIP_READINGS` readings at a time, so that the sort's copy stays small."""
     stack = np.asarray(stack)
-    if stack.ndim == 3 and stack.shape[1] > STRIP_ROWS:
+    if stack.ndim == 3 and stack.size > STRIP_READINGS and stack.shape[1] > 1:
         out = np.empty(stack.shape[1:], stack.dtype)
-        for rows in _strips(stack.shape[1]):
+        for rows in _strips(stack.shape):
             out[rows] = nan_median(stack[:, rows])
         return out
     ordered = np.sort(stack, axis=0)  # NaN last
@@ -307,8 +352,8 @@ def nan_median(stack: np.ndarray) -> np.ndarray:
     return median
 
 
-def _stuck(frames: np.ndarray, read: np.ndarray, good: np.ndarray, x: np.ndarray, valid: np.ndarray,
-           typical: float, noise, step: float) -> np.ndarray:
+def _stuck(frames: np.ndarray, read: np.ndarray, whole: np.ndarray, x: np.ndarray, typical: float, noise,
+           step: float) -> np.ndarray:
     """Photosites whose readings (unsaturated and following the motion in every frame) vary far
     less than a healthy one's would, where that is well past quantisation. A healthy one's
     variance is the smaller of two estimates, each too large somewhere: the median of its 8
@@ -317,13 +362,16 @@ def _stuck(frames: np.ndarray, read: np.ndarray, good: np.ndarray, x: np.ndarray
     read one value, to a quantisation step, in every frame: beside an edge the prediction misses
     (a border) both estimates can be far too large for a healthy photosite, whose readings still
     vary by its temporal noise. ``read`` are the ``frames`` as read (before the exposures were
-    divided out), where a stuck photosite's readings are one value."""
-    whole = good.all(axis=0) & valid.all(axis=0)
+    divided out), where a stuck photosite's readings are one value; ``whole``, the photosites whose
+    every reading is usable (not saturated, following the motion, predicted)."""
     stuck = np.zeros(whole.shape, bool)
     at = np.nonzero(whole & (np.ptp(read, axis=0) <= step))  # the few that read one value: tested further
     if not at[0].size:
         return stuck
-    around, _ = _ring_median(frames.var(axis=0), whole, at)
+    variance = np.empty(whole.shape, np.float32)
+    for rows in _strips(read.shape):  # a strip's temporaries, not the stack's
+        variance[rows] = frames[:, rows].var(axis=0)
+    around, _ = _ring_median(variance, whole, at)
     spread = read[:, at[0], at[1]].var(axis=0)
     seen = x[:, at[0], at[1]]
     # robust: a prediction gone wrong in one frame (an edge) does not make the scene vary
