@@ -19,6 +19,7 @@ from gainfpn_cli.sim.sensor import PRESETS
 from gainfpn_cli.sim.simulate import simulate_burst
 from gainfpn_cli.sim.truth import hot_offset_z
 from gainfpn_cli.solve import defects as D
+from gainfpn_cli.solve import stacks
 
 RAW12 = PRESETS["raw12"]
 MONO = dataclasses.replace(RAW12, cfa=None)
@@ -78,12 +79,12 @@ def test_stuck_photosites_are_found_in_frames_of_different_exposures():
 
 
 def test_strips_of_rows_change_nothing(monkeypatch):
-    # the per-photosite statistics run a strip of STRIP_READINGS readings at a time (memory): any strip
-    # height, the same codes (here 7 rows of the 6 frames, and 1 row for the offset fit's quarter strips)
+    # the per-photosite statistics run a strip of rows at a time (memory): any strip height, the same
+    # codes (here 7 rows of the 6 frames, and 1 row for the offset fit's quarter strips)
     burst = simulate_burst(shape=(120, 160), n_frames=6, sensor=MONO, scene="dead-leaves", exposure=0.15,
                            defects=0.01, seed=3)
     whole = _codes(burst, MONO)
-    monkeypatch.setattr(D, "STRIP_READINGS", 7 * 6 * 160)
+    monkeypatch.setattr(stacks, "STRIP_READINGS", 7 * 6 * 160)
     assert np.count_nonzero(whole) > 100 and np.array_equal(_codes(burst, MONO), whole)
 
 
@@ -216,6 +217,6 @@ def test_nan_median_is_numpys(stack):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN columns
         expected = np.nanmedian(stack, axis=0)
-    got = D.nan_median(stack)
+    got = stacks.nan_median(stack)
     assert got.dtype == expected.dtype
     np.testing.assert_array_equal(got, expected)

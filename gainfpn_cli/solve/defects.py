@@ -41,12 +41,12 @@ error scatters a healthy photosite's readings as much (docs/limits.md).
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
 
 import numpy as np
 
 from ..geometry.resample import sample, valid_samples, window_sum
 from ..metrics import MAD_TO_SIGMA
+from .stacks import Relative, nan_median, strips
 
 #: Codes of the ``defect`` channel of ``gain_map.exr``: 0 is a healthy photosite.
 HEALTHY, HOT, DEAD, STUCK = 0, 1, 2, 3
@@ -106,11 +106,6 @@ MIN_LEVEL = 0.02
 LEVEL_STEPS = 3.0
 #: Interpolation of the frames onto the reference grid and of the median scene back.
 KERNEL = "cubic"
-#: Readings (frames x photosites) of the strip of rows the per-photosite statistics work on at a time:
-#: each of their temporaries is then 16 MB of float32 whatever the frame size, not a frame stack's
-#: (768 MB at 12 MP x 16 frames).
-STRIP_READINGS = 2**22
-
 
 def detect(frames: np.ndarray, warp, *, saturation: float | None = None,
            excluded: np.ndarray | None = None, exposures: np.ndarray | None = None) -> np.ndarray:
@@ -123,7 +118,7 @@ def detect(frames: np.ndarray, warp, *, saturation: float | None = None,
     it (moving objects). Fewer than :data:`MIN_FRAMES` frames: all healthy.
     """
     read = np.asarray(frames, np.float32)
-    frames = read if exposures is None else _Relative(read, np.asarray(exposures, np.float32))
+    frames = read if exposures is None else Relative(read, np.asarray(exposures, np.float32))
     n_frames, h, w = frames.shape
     codes = np.zeros((h, w), np.uint8)
     if n_frames < MIN_FRAMES:
@@ -170,28 +165,6 @@ def detect(frames: np.ndarray, warp, *, saturation: float | None = None,
     return codes
 
 
-@dataclass(frozen=True)
-class _Relative:
-    """Frames brought to the reference's exposure, ``read / exposures``, divided a frame (``[t]``) or a
-    strip of rows (``[:, rows]``) at a time as they are used: the divided stack would be another
-    768 MB at 12 MP x 16 frames, on top of the read one. It stands in for the stack wherever the
-    helpers below take the frames divided (``frames``, ``y``)."""
-
-    read: np.ndarray  # (F, H, W) float32
-    exposures: np.ndarray  # (F,) float32
-
-    @property
-    def shape(self) -> tuple[int, ...]:
-        return self.read.shape
-
-    def __getitem__(self, key):
-        if isinstance(key, (int, np.integer)):
-            return self.read[key] / self.exposures[key]
-        if not (isinstance(key, tuple) and key[0] == slice(None)):
-            raise IndexError("a frame [t] or every frame's rows [:, rows]")
-        return self.read[key] / self.exposures[:, None, None]
-
-
 def _predictions(frames: np.ndarray, good, warp) -> tuple[np.ndarray, ...]:
     """The scene each photosite sees in each frame, ``(F, H, W)``, where it is known, and where it
     is predicted from the other frames: the median of the frames on the reference's grid brought
@@ -235,9 +208,9 @@ def _ring_median(values: np.ndarray, known: np.ndarray, at: tuple[np.ndarray, np
 
 def _responses(y: np.ndarray, x: np.ndarray, usable: np.ndarray) -> tuple[np.ndarray, ...]:
     """Per photosite: the median over frames of ``y / x``, its robust scatter, the count, the
-    lowest and the highest (a strip of :data:`STRIP_READINGS` readings at a time)."""
+    lowest and the highest (a strip at a time: :func:`stacks.strips`)."""
     out = [np.zeros(y.shape[1:], np.float32) for _ in range(4)]
-    for rows in _strips(y.shape):
+    for rows in strips(y.shape):
         with np.errstate(divide="ignore", invalid="ignore"):
             ratio = np.where(usable[:, rows], y[:, rows] / x[:, rows], np.float32(np.nan))
         response = nan_median(ratio)
@@ -262,16 +235,16 @@ def _offset_scores(y: np.ndarray, x: np.ndarray, fitted: np.ndarray, typical: fl
     prediction's error around it (the 5x5 median of the ratios' ``scatter`` over the frames times
     the level); the frames are Cauchy-weighted by their residuals about a robust start (the
     plane's gain, the median offset), and the error is scaled up by the fit's own scatter where
-    that is larger. A quarter of :data:`STRIP_READINGS` readings at a time."""
+    that is larger. A quarter strip at a time (:func:`stacks.strips`)."""
     count = fitted.sum(axis=0)
     level = np.zeros(count.shape, np.float32)
-    for rows in _strips(y.shape):
+    for rows in strips(y.shape):
         level[rows] = np.where(fitted[:, rows], x[:, rows], 0).sum(axis=0) / np.maximum(count[rows], 1)
     var = np.maximum(noise(level), _local_median(scatter * level) ** 2).astype(np.float32)
     root_weight = 1.0 / np.sqrt(np.maximum(var, 1e-12))  # noise-free data: no zero division
     prior = 1.0 / max(spread, 1e-6) ** 2
     score = np.zeros(count.shape)
-    for rows in _strips(y.shape, STRIP_READINGS // 4):  # a dozen temporaries of a strip's stack
+    for rows in strips(y.shape, parts=4):  # a dozen temporaries of a strip's stack
         use = fitted[:, rows]
         ys, xs = np.where(use, y[:, rows], np.float32(0)), np.where(use, x[:, rows], np.float32(0))
         root = use * (root_weight[rows] / CAUCHY_SCALE)  # z / c of a residual: residual x root
@@ -317,39 +290,12 @@ def _level_and_scatter(y: np.ndarray, x: np.ndarray, response: np.ndarray, where
     """At the photosites ``where``: the mean predicted scene over the frames, and the variance
     (n - 1 degrees of freedom) of the readings about ``response`` times it."""
     level, scatter = [], []
-    for rows in _strips(y.shape):
+    for rows in strips(y.shape):
         inside = where[rows]
         xs = x[:, rows][:, inside]
         level.append(xs.mean(axis=0))
         scatter.append((y[:, rows][:, inside] - response[rows][inside][None] * xs).var(axis=0, ddof=1))
     return np.concatenate(level), np.concatenate(scatter)
-
-
-def _strips(shape: tuple[int, ...], readings: int | None = None) -> list[slice]:
-    """Slices of rows covering a stack of ``shape`` ``(F, H, W)``, each of at most ``readings``
-    (:data:`STRIP_READINGS`) readings, and one row at least."""
-    n_frames, h, w = shape
-    rows = max(1, (readings or STRIP_READINGS) // max(n_frames * w, 1))
-    return [slice(y0, min(y0 + rows, h)) for y0 in range(0, h, rows)]
-
-
-def nan_median(stack: np.ndarray) -> np.ndarray:
-    """``np.nanmedian(stack, axis=0)`` (NaN where every value is), by one sort along the short
-    axis: NumPy's goes through masked arrays for a short axis, 10x slower on a frame stack.
-    A strip of :data:`STRIP_READINGS` readings at a time, so that the sort's copy stays small."""
-    stack = np.asarray(stack)
-    if stack.ndim == 3 and stack.size > STRIP_READINGS and stack.shape[1] > 1:
-        out = np.empty(stack.shape[1:], stack.dtype)
-        for rows in _strips(stack.shape):
-            out[rows] = nan_median(stack[:, rows])
-        return out
-    ordered = np.sort(stack, axis=0)  # NaN last
-    count = np.isfinite(ordered).sum(axis=0)
-    lower = np.take_along_axis(ordered, np.maximum((count - 1) // 2, 0)[None], axis=0)[0]
-    upper = np.take_along_axis(ordered, (count // 2)[None], axis=0)[0] if len(stack) else lower
-    median = (lower + upper) / 2
-    median[count == 0] = np.nan
-    return median
 
 
 def _stuck(frames: np.ndarray, read: np.ndarray, whole: np.ndarray, x: np.ndarray, typical: float, noise,
@@ -369,7 +315,7 @@ def _stuck(frames: np.ndarray, read: np.ndarray, whole: np.ndarray, x: np.ndarra
     if not at[0].size:
         return stuck
     variance = np.empty(whole.shape, np.float32)
-    for rows in _strips(read.shape):  # a strip's temporaries, not the stack's
+    for rows in strips(read.shape):  # a strip's temporaries, not the stack's
         variance[rows] = frames[:, rows].var(axis=0)
     around, _ = _ring_median(variance, whole, at)
     spread = read[:, at[0], at[1]].var(axis=0)
