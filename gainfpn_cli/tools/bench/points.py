@@ -153,9 +153,11 @@ def _all_points(quick: bool) -> list[Point]:
         points.append(Point("scaling_frames", f"balanced, {n} frames, 2 MP",
                             BurstSpec(shape=(1200, 1600), n_frames=n, supersample=2), preset="balanced"))
     points += _scene_model_points(base)
-    # the memory a 12 MP x 16 frame burst needs (4 GiB asked)
-    points.append(Point("scaling_frames", "balanced, 16 frames, 12 MP",
-                        BurstSpec(shape=(3000, 4000), n_frames=16, supersample=2), preset="balanced"))
+    # the memory a 12 MP x 16 frame burst needs (4 GiB asked), with the scene model too
+    big16 = BurstSpec(shape=(3000, 4000), n_frames=16, supersample=2)
+    points.append(Point("scaling_frames", "balanced, 16 frames, 12 MP", big16, preset="balanced"))
+    points.append(Point("scaling_frames", "balanced, scene solver, 16 frames, 12 MP", big16, preset="balanced",
+                        overrides={"solver.method": "scene"}))
     points.append(Point("scaling_frames", "balanced, 16 frames, 12 MP, 12-bit RGGB DNG",
                         BurstSpec(shape=(3000, 4000), n_frames=16, supersample=2, sensor="raw12"), preset="balanced"))
     return points
