@@ -124,8 +124,8 @@ def detect(frames: np.ndarray, warp, *, saturation: float | None = None,
     if n_frames < MIN_FRAMES:
         return codes
 
-    def good(t: int) -> np.ndarray:  # frame t's readings below saturation that follow the motion
-        below = frames[t] < (np.inf if saturation is None else saturation)
+    def good(t: int, frame: np.ndarray) -> np.ndarray:  # frame t's readings below saturation, following the motion
+        below = frame < (np.inf if saturation is None else saturation)
         return below if excluded is None else below & ~excluded[t]
 
     x, valid, from_frames = _predictions(frames, good, warp)
@@ -169,15 +169,15 @@ def _predictions(frames: np.ndarray, good, warp) -> tuple[np.ndarray, ...]:
     """The scene each photosite sees in each frame, ``(F, H, W)``, where it is known, and where it
     is predicted from the other frames: the median of the frames on the reference's grid brought
     back, or at the borders (fewer than :data:`MIN_FRAMES` frames on the point) the median of the
-    8 neighbours in the frame. ``good(t)`` gives frame ``t``'s usable readings (a frame at a time:
-    a mask of the stack would be another 192 MB at 12 MP x 16 frames)."""
+    8 neighbours in the frame. ``good(t, frames[t])`` gives frame ``t``'s usable readings (a frame at
+    a time: a mask of the stack would be another 192 MB at 12 MP x 16 frames)."""
     n_frames, h, w = frames.shape
     region = (0, 0, h, w)
     on_ref = np.full((n_frames, h, w), np.nan, np.float32)
     for t in range(n_frames):
-        M = warp.pair(0, t, region)
-        ok = valid_samples(good(t), M, (h, w), kernel=KERNEL)
-        on_ref[t][ok] = sample(frames[t], M, (h, w), kernel=KERNEL)[ok]
+        M, frame = warp.pair(0, t, region), frames[t]  # (frames may divide each frame as it is taken)
+        ok = valid_samples(good(t, frame), M, (h, w), kernel=KERNEL)
+        on_ref[t][ok] = sample(frame, M, (h, w), kernel=KERNEL)[ok]
     seen = np.isfinite(on_ref).sum(axis=0) >= MIN_FRAMES
     scene = np.where(seen, nan_median(on_ref), 0).astype(np.float32)  # all-NaN points: not known
     del on_ref
@@ -188,10 +188,11 @@ def _predictions(frames: np.ndarray, good, warp) -> tuple[np.ndarray, ...]:
         M = warp.pair(t, 0, region)
         x[t] = sample(scene, M, (h, w), kernel=KERNEL)
         from_frames[t] = known = valid_samples(seen, M, (h, w), kernel=KERNEL)
-        readable = good(t)
+        frame = frames[t]
+        readable = good(t, frame)
         valid[t] = readable & known
         border = np.nonzero(~known)  # the 8 neighbours' median only where the frames do not see the point
-        around, count = _ring_median(frames[t], readable, border)
+        around, count = _ring_median(frame, readable, border)
         x[t][border] = np.nan_to_num(around)
         valid[t][border] = readable[border] & (count >= MIN_NEIGHBOURS)  # edges of the frame have 3 or 5
     return x, valid, from_frames
