@@ -3,6 +3,7 @@ data follow the model, and its error against the pairwise solver and the noise b
 
 import dataclasses
 import json
+import warnings
 
 import numpy as np
 import pytest
@@ -13,6 +14,7 @@ from gainfpn_cli import metrics
 from gainfpn_cli.geometry.resample import positions
 from gainfpn_cli.geometry.warps import GlobalWarp
 from gainfpn_cli.parallel import single_threaded_math
+from gainfpn_cli.solve import scene
 from gainfpn_cli.sim.sensor import PRESETS
 from gainfpn_cli.sim.simulate import simulate_burst
 from gainfpn_cli.solve.accurate import solve_accurate
@@ -266,3 +268,19 @@ def test_readings_near_black_that_the_scene_explains_exactly_do_not_make_k_surer
     quintiles = metrics.confidence_deciles(result.k, burst.gain, sigma_from_confidence(result.confidence), inner,
                                            parts=5)
     assert quintiles[0] <= 1.3, quintiles
+
+
+def test_sigma_k_is_inf_without_a_warning_where_a_is_not_estimated():
+    # readings the fit explains exactly (residuals 0) give a window excess of 0; where a is not
+    # estimated sigma_k must still be inf, not inf * 0 = nan with a RuntimeWarning
+    rng = np.random.default_rng(0)
+    n_frames, shape = 3, (12, 12)
+    size = n_frames * shape[0] * shape[1]
+    est = np.ones(shape, bool)
+    est[4:7, 4:7] = False
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        sigma = scene._sigma(np.zeros(size), rng.standard_normal(size), rng.standard_normal(est.size), np.ones(size),
+                             np.ones(size), np.ones(est.size), est, n_frames, np.zeros(shape, bool))
+    assert np.all(np.isinf(sigma[~est]))
+    assert np.all(np.isfinite(sigma[est]))

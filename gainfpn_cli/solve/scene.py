@@ -292,5 +292,6 @@ def _sigma(residual, fitted, da, variance, weight, a, est, n_frames, at_black) -
     excess = np.where(window_sum(at_black.astype(np.float32), 5) > 0, np.maximum(excess, 1.0), excess)
     moved = np.where(est, da.reshape(shape) ** 2, 0.0)
     variance_a = np.divide(window_sum(moved, 9), window_sum(est.astype(np.float64), 9), out=np.full(shape, np.inf),
-                           where=est) * excess
+                           where=est)
+    np.multiply(variance_a, excess, out=variance_a, where=est)  # inf stays inf where a is not estimated
     return np.sqrt(np.maximum(variance_a, 0.0)) / np.maximum(a.reshape(shape), 1e-3) ** 2
