@@ -81,7 +81,9 @@ class SceneFit:
     and exposures) and where they count, the model's prediction of them without the gains
     (``B W_t S``), the gains ``a``, the last step's weights, variances and residuals, the fitted
     noise model ``(alpha, beta)`` (None if the fit never measured one), each frame's exposure
-    relative to the readings', the last Gauss-Newton step's operands and the CG iterations."""
+    relative to the readings', the last Gauss-Newton step's operands, the CG iterations and where
+    each frame's pixels see the first frame's grid, as refined against the model (``(pixels, 2)``
+    (x, y) per frame, tile px)."""
 
     y: np.ndarray
     valid: np.ndarray
@@ -96,6 +98,7 @@ class SceneFit:
     est: np.ndarray
     A: Sampling
     iterations: int
+    points: list
 
 
 def fit_tile(tile: Tile) -> SceneFit | None:
@@ -117,21 +120,39 @@ def fit_tile(tile: Tile) -> SceneFit | None:
     s = _mean_along(A, valid.astype(np.float64), y, valid)
     a = np.ones(h * w)
     iterations = 0
-    noise = (np.var(y[valid]) * 1e-4, 0.0)  # the first step: uniform weights
+    uniform = (np.var(y[valid]) * 1e-4, 0.0)  # the first step: uniform weights
+    noise = uniform
     exposure = np.ones(n_frames)
     # a plane sampled every other photosite (aperture below 1) is aliased enough that its misfit
     # looks like a misregistration: refined there, readings the model explains exactly lost
     # 0.0025 -> 0.028 % and raw12 bursts gained nothing (tests/test_scene.py, docs/method.md)
     refine = opt.refine_frames and opt.aperture == 1
-    step = 0
+    step, first_moves, restarted = 0, None, False
     while True:
         predicted = A.forward(s)
         residual = y - np.tile(a, n_frames) * predicted
         fitted = None if step == 0 and not refine else noise_variance(residual[valid], predicted[valid])
         moved = False
-        if refine and step < opt.steps + opt.extra_steps:  # at step 0 against the readings' mean along the warps
+        if refine and step < opt.steps + opt.extra_steps and not (step == 0 and restarted):
+            # before a step that follows anyway any significant change is taken, after the last
+            # only a material one, which adds a step
+            material = step == 0 or step >= opt.steps
             moves, gains = refine_frames(A.forward, s, predicted, a, y, valid, fitted, (h, w), scale=opt.scale,
-                                         refine_px=opt.refine_px, refine_exposure=opt.refine_exposure)
+                                         refine_px=opt.refine_px if material else 0.0,
+                                         refine_exposure=opt.refine_exposure if material else 0.0)
+            if step == 0:
+                # against the readings' mean along the warps (a = 1 leaves the FPN in them) the
+                # warps moved by 0.1-0.4 px where they were 0.02-0.05 px off: their change waits
+                # for the fitted model to confirm a material misregistration
+                first_moves, moves = moves, np.zeros_like(moves)
+            elif step == 1 and not restarted and np.any(first_moves) and _material(moves, opt.refine_px):
+                # confirmed: start again with the first moves, before s and a take it up
+                points, exposure, A, valid, y = _moved(points, first_moves, exposure, np.ones(n_frames), frames,
+                                                       good, fine, opt)
+                s = _mean_along(A, valid / np.maximum(uniform[0], 1e-12), y, valid)
+                a = np.ones(h * w)
+                noise, step, restarted = uniform, 0, True
+                continue
             moved = bool(np.any(moves) or np.any(gains != 1))
             if moved:  # sample the scene where the frames now say they see it
                 points, exposure, A, valid, y = _moved(points, moves, exposure, gains, frames, good, fine, opt)
@@ -140,6 +161,7 @@ def fit_tile(tile: Tile) -> SceneFit | None:
                 predicted = A.forward(s)
                 residual = y - np.tile(a, n_frames) * predicted
                 fitted = None if step == 0 else noise_variance(residual[valid], predicted[valid])
+            moved = moved and material
         if step >= opt.steps + (opt.extra_steps if moved else 0):  # a frame that moved adds a step
             break
         if step > 0:
@@ -153,7 +175,8 @@ def fit_tile(tile: Tile) -> SceneFit | None:
         a += da
         iterations += its
         step += 1
-    return SceneFit(y, valid, predicted, a, s, weight, variance, residual, fitted, exposure, est, A, iterations)
+    return SceneFit(y, valid, predicted, a, s, weight, variance, residual, fitted, exposure, est, A, iterations,
+                    points)
 
 
 
@@ -161,6 +184,11 @@ def _mean_along(A, weight, y, valid):
     """The scene as the weighted mean of the readings that see each sample (the start of a fit)."""
     count = A.back(weight)
     return np.divide(A.back(weight * y), count, out=np.full(count.size, np.mean(y[valid])), where=count > 0)
+
+
+def _material(moves: np.ndarray, refine_px: float) -> bool:
+    """Whether some frame's ``moves`` ``(frames, pixels, 2)`` are more than ``refine_px`` RMS."""
+    return bool(np.any(np.sqrt(np.mean(np.sum(moves**2, axis=2), axis=1)) > refine_px))
 
 
 def _moved(points, moves, exposure, gains, frames, good, fine, opt):
