@@ -29,6 +29,7 @@ def test_a_small_plan_runs_every_kind_of_point(tmp_path, monkeypatch):
     assert set(fast["timings"]) >= {"read_s", "motion_s", "solve_s", "write_s", "total_s"}
     assert flow["flow_error_px"] == 0.8 and flow["mse_ratio"] > 0
     assert len(motion["motion_worst_px"]) == 2 and max(motion["motion_worst_px"]) < 0.5  # sub-pixel on 2 seeds
+    assert len(motion["refined_worst_px"]) == 2 and max(motion["refined_worst_px"]) < 0.5
     assert rows["translation"]["refused"].startswith("motion.model translation leaves out how the frames move")
     assert all(r["peak_rss_mb"] > 10 for r in rows.values())
     summary = json.loads((tmp_path / "results.json").read_text())

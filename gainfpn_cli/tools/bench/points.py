@@ -22,6 +22,8 @@ MOTIONS = {"shake": {}, "4 px shake": {"translation_px": 2.5, "rotation_deg": 0.
 MOTION_SEEDS = 8
 #: The motion accuracy asked of every frame: RMS trajectory error (px) over the frame's background.
 MOTION_TARGET_PX = 0.05
+#: ... and of the warps the scene solver refines against its model (issue 22's target).
+REFINED_TARGET_PX = 0.02
 
 
 @dataclass(frozen=True)
