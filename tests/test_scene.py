@@ -14,13 +14,18 @@ from gainfpn_cli import metrics
 from gainfpn_cli.geometry.resample import positions
 from gainfpn_cli.geometry.warps import GlobalWarp
 from gainfpn_cli.parallel import single_threaded_math
-from gainfpn_cli.solve import scene
 from gainfpn_cli.sim.sensor import PRESETS
 from gainfpn_cli.sim.simulate import simulate_burst
+from gainfpn_cli.solve import scene
 from gainfpn_cli.solve.accurate import solve_accurate
 from gainfpn_cli.solve.result import sigma_from_confidence
 from gainfpn_cli.solve.sampling import sampling
-from gainfpn_cli.solve.scene import SceneOptions, censored_response, prepare, solve_scene
+from gainfpn_cli.solve.scene import (
+    SceneOptions,
+    censored_response,
+    prepare,
+    solve_scene,
+)
 from gainfpn_cli.solve.scenemodel import (
     add_smoothness,
     fit_tile,
@@ -123,7 +128,7 @@ def test_warps_the_burst_follows_stay_where_they_are(noise):
     # the truth's warps: refined by at most 0.0071 px RMS in the worst frame and k within 2.3 % of
     # the unrefined one's residual (96x128x8 paper bursts, seeds 1-5, with and without noise)
     burst, _, frames = _paper_burst(1, noise=noise)
-    tile = prepare(dict(frames=frames, motion=GlobalWarp(burst.homographies)), SceneOptions())[0]
+    tile = prepare({"frames": frames, "motion": GlobalWarp(burst.homographies)}, SceneOptions())[0]
     fit = fit_tile(tile)
     assert _worst_error(fit.points, _points(tile.motion, frames.shape[1:])) <= 0.01
     inner = metrics.interior_mask(frames.shape[1:], 12)
@@ -139,7 +144,7 @@ def test_misregistrations_below_refine_px_are_refined_before_the_last_step(shift
     # worst frame's error 0.0447 -> 0.0209 px and 0.045 -> 0.0169 px (the others' 0.002-0.011)
     frames, motion, _ = _model_burst()
     told, _ = _off_model(motion, shift, 0.0, 1.0)
-    tile = prepare(dict(frames=frames, motion=told), SceneOptions())[0]
+    tile = prepare({"frames": frames, "motion": told}, SceneOptions())[0]
     truth = _points(motion, frames.shape[1:])
     assert _worst_error(fit_tile(tile).points, truth) <= 0.6 * _worst_error(_points(told, frames.shape[1:]), truth)
 

@@ -74,10 +74,14 @@ class SceneOptions:
     gain_range : (float, float)
         Gains outside it are left unestimated.
     refine_frames : bool
-        After each step, refine every frame's warp over the tile and its exposure against the
-        model (:func:`solve.frames.refine_frames`); a frame that moves adds a step, up to ``extra_steps``.
+        Refine every frame's warp over the tile and its exposure against the model
+        (:func:`solve.frames.refine_frames`, docs/method.md section 8b): before the first step the
+        exposures, after it any significant change, after the last a material one, which adds a
+        step, up to ``extra_steps``.
     refine_px, refine_exposure : float
-        The RMS move (grid px) and the exposure change below which a frame is left as it is.
+        The RMS move (grid px) and the exposure change that make a change material: after the last
+        step one below both is left; after the first, a move above ``refine_px`` starts the fit
+        again with the moves found before it.
     """
 
     scale: int = 2
@@ -94,11 +98,10 @@ class SceneOptions:
     gain_range: tuple[float, float] = (0.5, 2.0)
     refine_frames: bool = True
     # up to 4 more steps while frames still move: 1 px of distortion under a forced homography
-    # (640x480x8, bench) 1.87 % -> 0.99 %, most of it in the first 2
+    # (640x480x8, bench) 1.87 % -> 0.98 %
     extra_steps: int = 4
-    # steps smaller than these are left: on bursts whose warps are the truth (96x128 paper bursts,
-    # seeds 1-3) noise and the first step's blurred scene give moves of 0.02-0.055 px and exposure
-    # changes to 0.1 %
+    # on bursts whose warps are the truth (96x128 paper bursts, seeds 1-3) noise and the first
+    # step's blurred scene give moves of 0.02-0.055 px and exposure changes to 0.1 %
     refine_px: float = 0.05
     refine_exposure: float = 0.002
 

@@ -273,7 +273,7 @@ def refined_rms(frames: np.ndarray, motion, burst) -> list[float]:
     n_frames, h, w = frames.shape
     options = SceneOptions()
     squares, counts = np.zeros(n_frames), np.zeros(n_frames)
-    for tile in prepare(dict(frames=frames, motion=motion.warp), options):
+    for tile in prepare({"frames": frames, "motion": motion.warp}, options):
         fit = fit_tile(tile)
         th, tw = tile.frames.shape[1:]
         region = (tile.y0, tile.x0, th, tw)

@@ -38,11 +38,11 @@ def markdown(summary: dict) -> str:
                      f"{time_text} | {r['peak_rss_mb']:.0f} |")
     motion = [r for r in summary["points"] if r["kind"] == "motion"]
     if motion:
-        lines += ["", f"Motion accuracy: each burst's worst frame, RMS trajectory error over the background, px, of "
-                  f"the first estimate (as the default preset's; target {MOTION_TARGET_PX} px) and of the warps the "
-                  f"scene solver refines from it against its model (target {REFINED_TARGET_PX} px).", "",
-                  "| point | burst | scene | bursts (seeds) | median | max | over target | refined median | refined max "
-                  "| over target | motion s per burst | refining s per burst |",
+        lines += ["", (f"Motion accuracy: each burst's worst frame, RMS trajectory error over the background, px, of "
+                       f"the first estimate (as the default preset's; target {MOTION_TARGET_PX} px) and of the warps the "
+                       f"scene solver refines from it against its model (target {REFINED_TARGET_PX} px)."), "",
+                  ("| point | burst | scene | bursts (seeds) | median | max | over target | refined median | refined max "
+                   "| over target | motion s per burst | refining s per burst |"),
                   "|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in motion:
             b, worst = r["burst"], np.array(r["motion_worst_px"])
