@@ -73,8 +73,7 @@ def _model_burst(seed=0, shape=(64, 80), n_frames=8, scale=2, aperture=1.0):
     motion = GlobalWarp(np.array(homographies))
     fine = (scale * h, scale * w)
     scene = cv2.GaussianBlur(rng.uniform(0.3, 1.0, fine), (0, 0), 0.7)
-    points = [positions(motion.pair(t, 0, (0, 0, h, w)), shape).reshape(-1, 2) for t in range(n_frames)]
-    A, inside = sampling(points, fine, scale, aperture)
+    A, inside = sampling(_points(motion, shape), fine, scale, aperture)
     gain = 1 + 0.02 * rng.standard_normal(h * w)
     frames = 1000 * np.tile(gain, n_frames) * (A.sparse() @ scene.ravel())
     frames[~inside] = 0  # out of view: left out as dark

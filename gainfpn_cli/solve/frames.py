@@ -58,11 +58,16 @@ def refine_frames(forward, s, predicted, a, y, valid, noise, shape, *, scale: in
     gains = np.ones(n_frames)
     for t in range(n_frames):
         move = np.stack([basis @ steps[t, :m], basis @ steps[t, m:2 * m]], axis=1)
-        material = (np.sqrt(np.mean(np.sum(move**2, axis=1))) > refine_px
+        material = (rms_move(move) > refine_px
                     or abs(steps[t, 2 * m]) > refine_exposure)
         if material and chi2[t] > REFINE_CHI2 and np.all(np.isfinite(steps[t])):
             moves[t], gains[t] = move, 1.0 + steps[t, 2 * m]
     return moves, gains
+
+
+def rms_move(moves: np.ndarray):
+    """The RMS length of ``moves`` ``(..., pixels, 2)`` (grid px): per frame for a stack of them."""
+    return np.sqrt(np.mean(np.sum(moves**2, axis=-1), axis=-1))
 
 
 #: Chi-square of a frame's 13 refinement parameters above which the step is more than noise

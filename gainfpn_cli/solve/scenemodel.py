@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..geometry.resample import positions
-from .frames import refine_frames
+from .frames import refine_frames, rms_move
 from .sampling import Sampling, compiled, sampling
 from .tiling import Tile
 
@@ -188,7 +188,7 @@ def _mean_along(A, weight, y, valid):
 
 def _material(moves: np.ndarray, refine_px: float) -> bool:
     """Whether some frame's ``moves`` ``(frames, pixels, 2)`` are more than ``refine_px`` RMS."""
-    return bool(np.any(np.sqrt(np.mean(np.sum(moves**2, axis=2), axis=1)) > refine_px))
+    return bool(np.any(rms_move(moves) > refine_px))
 
 
 def _moved(points, moves, exposure, gains, frames, good, fine, opt):

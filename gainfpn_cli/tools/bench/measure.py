@@ -285,10 +285,7 @@ def refined_rms(frames: np.ndarray, motion, burst) -> list[float]:
                  for t in range(n_frames)]
         for t in range(1, n_frames):
             true = apply_homography(burst.homographies[0] @ np.linalg.inv(burst.homographies[t]), pixels)
-            keep = (true[:, 0] >= 0) & (true[:, 0] <= w - 1) & (true[:, 1] >= 0) & (true[:, 1] <= h - 1)
-            if burst.moving is not None:
-                col, row = np.clip(np.round(true).astype(int), 0, [w - 1, h - 1]).T
-                keep &= ~burst.moving[t][pixels[:, 1].astype(int), pixels[:, 0].astype(int)] & ~burst.moving[0][row, col]
+            keep = _background(burst, t, true, pixels)
             first = apply_homography(motion.homographies[0] @ np.linalg.inv(motion.homographies[t]), pixels)
             error = first + moves[t] - moves[0] - true
             squares[t] += np.sum(error[keep] ** 2)
@@ -305,12 +302,23 @@ def background_rms(H: np.ndarray, burst, t: int) -> float:
     ys, xs = np.mgrid[0:h, 0:w]
     points = np.stack([xs.ravel(), ys.ravel()], axis=1).astype(np.float64)
     true = apply_homography(burst.homographies[t], points)
-    keep = (true[:, 0] >= 0) & (true[:, 0] <= w - 1) & (true[:, 1] >= 0) & (true[:, 1] <= h - 1)
-    if burst.moving is not None:
-        col, row = np.clip(np.round(true).astype(int), 0, [w - 1, h - 1]).T
-        keep &= ~burst.moving[0].ravel() & ~burst.moving[t][row, col]
+    keep = _background(burst, t, points, true)
     error = apply_homography(H, points[keep]) - true[keep]
     return float(np.sqrt(np.mean(np.sum(error**2, axis=1))))
+
+
+def _background(burst, t: int, reference: np.ndarray, seen: np.ndarray) -> np.ndarray:
+    """Which of the point pairs ``reference`` (x, y in the reference) and ``seen`` (where frame ``t``
+    sees them) lie inside both frames and on the background in both (not the moving object)."""
+    h, w = burst.frames.shape[1:]
+    keep = np.ones(len(reference), bool)
+    for xy in (reference, seen):
+        keep &= (xy[:, 0] >= 0) & (xy[:, 0] <= w - 1) & (xy[:, 1] >= 0) & (xy[:, 1] <= h - 1)
+    if burst.moving is not None:
+        for frame, xy in ((0, reference), (t, seen)):
+            col, row = np.clip(np.round(xy).astype(int), 0, [w - 1, h - 1]).T
+            keep &= ~burst.moving[frame][row, col]
+    return keep
 
 
 def _workers(folder: Path) -> dict:
