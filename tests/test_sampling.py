@@ -57,3 +57,17 @@ def test_compiled_products_are_those_of_the_sparse_matrix(scale, aperture, seed)
     np.testing.assert_allclose(A.back_squared(r), M.multiply(M).T @ r.astype(np.float32),
                                atol=1e-5 * np.abs(r).max())
     assert not A.forward(v)[~inside].any()
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**16), width=st.sampled_from([0.5, 1.0, 1.5, 2.0, 3.0, 4.0]))
+def test_compiled_weights_are_box_spline_weights_bit_for_bit(seed, width):
+    from gainfpn_cli.solve.sampling import _box_weights
+
+    u = np.random.default_rng(seed).uniform(-20.0, 600.0, 500)
+    u[:3] = [0.0, 1.5, -0.25]  # on a tap and half-way
+    taps, weights = box_spline_weights(u, width)
+    first, compiled = np.empty(u.size, np.int64), np.empty(weights.shape, np.float32)
+    _box_weights(u, width, first, compiled)
+    np.testing.assert_array_equal(first, taps[:, 0])
+    np.testing.assert_array_equal(compiled, weights.astype(np.float32))

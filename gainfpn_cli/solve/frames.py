@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .sampling import compiled
+
 
 def refine_frames(forward, s, predicted, a, y, valid, noise, shape, *, scale: int, refine_px: float,
                   refine_exposure: float):
@@ -42,10 +44,9 @@ def refine_frames(forward, s, predicted, a, y, valid, noise, shape, *, scale: in
     chi2 = np.zeros(n_frames)
     for t in range(n_frames):
         at_t = slice(t * n, (t + 1) * n)
-        J = np.concatenate([(a * slope_x[at_t])[:, None] * basis, (a * slope_y[at_t])[:, None] * basis,
-                            (a * predicted[at_t])[:, None]], axis=1)
-        H = J.T @ (weight[t][:, None] * J)
-        g = J.T @ (weight[t] * residual[at_t])
+        H, g = np.zeros((2 * m + 1, 2 * m + 1)), np.zeros(2 * m + 1)
+        _normal_equations(a * slope_x[at_t], a * slope_y[at_t], a * predicted[at_t], weight[t], residual[at_t], u, v,
+                          H, g)
         try:
             steps[t] = np.linalg.solve(H, g)
         except np.linalg.LinAlgError:
@@ -56,13 +57,42 @@ def refine_frames(forward, s, predicted, a, y, valid, noise, shape, *, scale: in
     steps -= steps.mean(axis=0)
     moves = np.zeros((n_frames, n, 2))
     gains = np.ones(n_frames)
+    gram = basis.T @ basis / n  # a field's mean square from its coefficients
     for t in range(n_frames):
-        move = np.stack([basis @ steps[t, :m], basis @ steps[t, m:2 * m]], axis=1)
-        material = (rms_move(move) > refine_px
-                    or abs(steps[t, 2 * m]) > refine_exposure)
+        rms = np.sqrt(max(steps[t, :m] @ gram @ steps[t, :m] + steps[t, m:2 * m] @ gram @ steps[t, m:2 * m], 0.0))
+        material = rms > refine_px or abs(steps[t, 2 * m]) > refine_exposure
         if material and chi2[t] > REFINE_CHI2 and np.all(np.isfinite(steps[t])):
-            moves[t], gains[t] = move, 1.0 + steps[t, 2 * m]
+            moves[t] = np.stack([basis @ steps[t, :m], basis @ steps[t, m:2 * m]], axis=1)
+            gains[t] = 1.0 + steps[t, 2 * m]
     return moves, gains
+
+
+@compiled
+def _normal_equations(ax, ay, ap, weight, residual, u, v, H, g):
+    """Add one frame's weighted normal equations ``J^T W J`` and ``J^T W r`` to ``H`` and ``g``: per
+    reading the Jacobian row is the quadratic basis ``1, u, v, u^2, uv, v^2`` times the slopes
+    ``ax``, then times ``ay``, then the level ``ap`` (the exposure)."""
+    m = 6
+    j = np.empty(2 * m + 1)
+    for i in range(weight.size):
+        w = weight[i]
+        if w == 0.0:
+            continue
+        j[0], j[1], j[2] = 1.0, u[i], v[i]
+        j[3], j[4], j[5] = u[i] * u[i], u[i] * v[i], v[i] * v[i]
+        for c in range(m):
+            j[m + c] = ay[i] * j[c]
+            j[c] = ax[i] * j[c]
+        j[2 * m] = ap[i]
+        wr = w * residual[i]
+        for c in range(2 * m + 1):
+            wc = w * j[c]
+            g[c] += j[c] * wr
+            for d in range(c, 2 * m + 1):
+                H[c, d] += wc * j[d]
+    for c in range(2 * m + 1):
+        for d in range(c):
+            H[c, d] = H[d, c]
 
 
 def rms_move(moves: np.ndarray):

@@ -250,6 +250,8 @@ def _censored_per_pixel(fit, black, seen, a) -> np.ndarray:
     """Each pixel's :func:`censored_response`: the fraction of black among the readings (``seen``,
     ``(F, H, W)``) that see each scene sample, carried to the readings kept, averaged per pixel
     over its readings by their information on its gain."""
+    if not black.any():  # every reading follows its gain
+        return np.ones(seen.shape[1:])
     sees = fit.A.back(seen.reshape(-1).astype(np.float64))
     fraction = np.divide(fit.A.back(black.reshape(-1).astype(np.float64)), sees, out=np.zeros(sees.size),
                          where=sees > 0)

@@ -58,14 +58,20 @@ def _add_smoothness(v, fh, fw, weight, out):
 def noise_variance(residuals: np.ndarray, predicted: np.ndarray, bins: int = 8) -> tuple[float, float]:
     """``(alpha, beta)`` of the noise model ``var = alpha + beta * predicted`` (shot and read
     noise), fitted to the squared ``residuals`` by robust medians over quantile bins of the level."""
-    edges = np.quantile(predicted, np.linspace(0, 1, bins + 1))
-    which = np.clip(np.searchsorted(edges, predicted, side="right") - 1, 0, bins - 1)
+    ordered = np.sort(predicted)
+    edges = np.quantile(ordered, np.linspace(0, 1, bins + 1))
+    # bin b holds the levels in [edges[b], edges[b + 1]) (the last one its top edge too): a slice of
+    # the sorted levels, and the squares gathered bin by bin in one pass
+    bounds = np.searchsorted(ordered, edges, side="left")
+    bounds[0], bounds[-1] = 0, ordered.size
+    squares = np.empty(ordered.size)
+    _squares_by_bin(np.asarray(residuals, np.float64), np.asarray(predicted, np.float64), edges, bounds[:-1].copy(),
+                    squares)
     level, variance = [], []
-    for b in range(bins):
-        r = residuals[which == b]
-        if r.size >= 8:
-            level.append(np.median(predicted[which == b]))
-            variance.append(np.median(r**2) / CHI2_MEDIAN)
+    for lo, hi in zip(bounds[:-1], bounds[1:]):
+        if hi - lo >= 8:
+            level.append(np.median(ordered[lo:hi]))
+            variance.append(np.median(squares[lo:hi]) / CHI2_MEDIAN)
     if len(level) < 2 or np.ptp(level) <= 0:
         return float(np.mean(variance)) if variance else 1.0, 0.0
     beta, alpha = np.polyfit(level, variance, 1)
@@ -73,6 +79,20 @@ def noise_variance(residuals: np.ndarray, predicted: np.ndarray, bins: int = 8) 
         beta = max(beta, 0.0)
         alpha = max(float(np.median(np.array(variance) - beta * np.array(level))), 0.0)
     return float(alpha), float(beta)
+
+
+@compiled
+def _squares_by_bin(residuals, levels, edges, starts, out):
+    """``residuals**2`` into ``out``, bin by bin: the bin of a level is the last of ``edges[:-1]`` at or
+    below it, and bin b's squares fill ``out`` from ``starts[b]``."""
+    fill = starts.copy()
+    last = edges.size - 2
+    for i in range(residuals.size):
+        b = last
+        while b > 0 and levels[i] < edges[b]:
+            b -= 1
+        out[fill[b]] = residuals[i] * residuals[i]
+        fill[b] += 1
 
 
 @dataclass(frozen=True)
@@ -271,12 +291,31 @@ def _pcg(operator, rhs, diagonal, iterations: int, rtol: float):
     stop = rtol * np.sqrt(r @ r)
     for i in range(iterations):
         q = operator(p)
-        alpha = rz / (p @ q)
-        x += alpha * p
-        r -= alpha * q
-        if np.sqrt(r @ r) <= stop:
+        rr, rz_next = _cg_update(rz / (p @ q), p, q, diagonal, x, r, z)
+        if np.sqrt(rr) <= stop:
             return x, i + 1
-        z = r / diagonal
-        rz, previous = r @ z, rz
-        p = z + (rz / previous) * p
+        _cg_direction(z, rz_next / rz, p)
+        rz = rz_next
     return x, iterations
+
+
+@compiled
+def _cg_update(alpha, p, q, diagonal, x, r, z):
+    """One conjugate-gradient update in one pass: ``x += alpha p``, ``r -= alpha q``, ``z = r / diagonal``;
+    returns ``r . r`` and ``r . z``."""
+    rr = 0.0
+    rz = 0.0
+    for i in range(x.size):
+        x[i] += alpha * p[i]
+        r[i] -= alpha * q[i]
+        z[i] = r[i] / diagonal[i]
+        rr += r[i] * r[i]
+        rz += r[i] * z[i]
+    return rr, rz
+
+
+@compiled
+def _cg_direction(z, beta, p):
+    """``p = z + beta p``."""
+    for i in range(p.size):
+        p[i] = z[i] + beta * p[i]
