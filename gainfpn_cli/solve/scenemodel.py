@@ -9,6 +9,7 @@ fit predicts. Pure array functions on one tile at a time.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from itertools import pairwise
 
 import numpy as np
 
@@ -68,7 +69,7 @@ def noise_variance(residuals: np.ndarray, predicted: np.ndarray, bins: int = 8) 
     _squares_by_bin(np.asarray(residuals, np.float64), np.asarray(predicted, np.float64), edges, bounds[:-1].copy(),
                     squares)
     level, variance = [], []
-    for lo, hi in zip(bounds[:-1], bounds[1:]):
+    for lo, hi in pairwise(bounds):
         if hi - lo >= 8:
             level.append(np.median(ordered[lo:hi]))
             variance.append(np.median(squares[lo:hi]) / CHI2_MEDIAN)
