@@ -66,8 +66,7 @@ def noise_variance(residuals: np.ndarray, predicted: np.ndarray, bins: int = 8) 
     bounds = np.searchsorted(ordered, edges, side="left")
     bounds[0], bounds[-1] = 0, ordered.size
     squares = np.empty(ordered.size)
-    _squares_by_bin(np.asarray(residuals, np.float64), np.asarray(predicted, np.float64), edges, bounds[:-1].copy(),
-                    squares)
+    _squares_by_bin(np.asarray(residuals, np.float64), np.asarray(predicted, np.float64), edges, bounds[:-1], squares)
     level, variance = [], []
     for lo, hi in pairwise(bounds):
         if hi - lo >= 8:

@@ -269,6 +269,7 @@ def refined_rms(frames: np.ndarray, motion, burst) -> list[float]:
     from ...geometry.warps import apply_homography
     from ...solve.scene import SceneOptions, prepare
     from ...solve.scenemodel import fit_tile
+    from ...solve.tiling import ramp
 
     n_frames, h, w = frames.shape
     options = SceneOptions()
@@ -278,8 +279,7 @@ def refined_rms(frames: np.ndarray, motion, burst) -> list[float]:
         th, tw = tile.frames.shape[1:]
         region = (tile.y0, tile.x0, th, tw)
         rows, cols = np.mgrid[:th, :tw]
-        core = ((rows >= (tile.y0 > 0) * options.halo) & (rows < th - (tile.y0 + th < h) * options.halo)
-                & (cols >= (tile.x0 > 0) * options.halo) & (cols < tw - (tile.x0 + tw < w) * options.halo)).ravel()
+        core = (ramp((th, tw), (tile.y0, tile.x0), (h, w), options.halo) >= 1).ravel()  # its blend weight 1
         pixels = np.stack([cols.ravel(), rows.ravel()], axis=1)[core].astype(np.float64) + [tile.x0, tile.y0]
         moves = [(fit.points[t] - positions(tile.motion.pair(t, 0, region), (th, tw)).reshape(-1, 2))[core]
                  for t in range(n_frames)]
