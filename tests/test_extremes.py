@@ -159,17 +159,22 @@ def test_a_third_of_the_pixels_saturated():
     assert _residual(result, burst) < 1.3
 
 
+@pytest.mark.filterwarnings("error::RuntimeWarning")  # no square may overflow on the way
+@pytest.mark.parametrize("defects", [0.0, 0.005])
 @pytest.mark.parametrize("exponent", [108, 119, -116])
-def test_the_estimate_does_not_depend_on_the_frames_scale(shaken, exponent):
+def test_the_estimate_does_not_depend_on_the_frames_scale(shaken, exponent, defects):
     # peaks of 8e34 and 1.7e38 (float32's largest is 3.4e38) and 3e-33 (its
     # smallest normal is 1.2e-38); powers of two scale exactly, so the
-    # estimate must come out the same. A corrected frame that would overflow
-    # is refused when written (test_cli).
-    frames, burst = shaken
+    # estimate must come out the same, and the same photosites be found
+    # defective (the 0.5 % burst: 10 of them) and repaired. A corrected frame
+    # that would overflow is refused when written (test_cli).
+    frames, burst = shaken if not defects else _burst(defects=defects)
     base = _run(frames, burst.saturation)
     factor = 2.0**exponent
     scaled = _run(frames * np.float32(factor), burst.saturation * factor)
     np.testing.assert_allclose(scaled.k, base.k, atol=1e-5)
+    assert (base.defects > 0).sum() == (10 if defects else 0)
+    np.testing.assert_array_equal(scaled.defects, base.defects)
 
 
 def test_sixteen_bit_full_scale_dng(tmp_path):

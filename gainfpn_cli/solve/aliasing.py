@@ -89,7 +89,8 @@ def aliasing(frames: np.ndarray, motion, *, exposures=None, good: np.ndarray | N
         source_ok = np.ones((h, w), bool) if good is None else good[t]
         valid[t - 1] = ok0 & valid_samples(source_ok, M, shape, kernel="cubic")
         phase = xy - np.floor(xy)
-        q[t - 1] = (reference - predicted) ** 2 / (1.0 + noise_gain(phase))
+        # squared in float64: float32 squares overflow at scales past 1e19 (tests/test_extremes.py)
+        q[t - 1] = np.square(reference - predicted, dtype=np.float64) / (1.0 + noise_gain(phase))
         b[t - 1] = (np.sin(np.pi * phase) ** 2).sum(axis=-1)
     seen = valid.sum(axis=0)
     use = valid & (seen >= MIN_FRAMES)[None]

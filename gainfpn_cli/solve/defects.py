@@ -47,6 +47,7 @@ import numpy as np
 from ..geometry.resample import sample, valid_samples, window_sum
 from ..metrics import MAD_TO_SIGMA
 from .stacks import Relative, nan_median, strips
+from .tiling import power_of_two_scale
 
 #: Codes of the ``defect`` channel of ``gain_map.exr``: 0 is a healthy photosite.
 HEALTHY, HOT, DEAD, STUCK = 0, 1, 2, 3
@@ -106,6 +107,10 @@ MIN_LEVEL = 0.02
 LEVEL_STEPS = 3.0
 #: Interpolation of the frames onto the reference grid and of the median scene back.
 KERNEL = "cubic"
+#: Reference peaks between which the search runs on the readings as they are; past them a stack is
+#: divided by a power of two near its level first. float32 holds squares up to 2**128 and down to
+#: 2**-126: the variances of readings near 2**64 overflow, and those of readings near 2**-63 underflow.
+SAFE_PEAK = (2.0**-32, 2.0**32)
 
 def detect(frames: np.ndarray, warp, *, saturation: float | None = None,
            excluded: np.ndarray | None = None, exposures: np.ndarray | None = None) -> np.ndarray:
@@ -118,6 +123,9 @@ def detect(frames: np.ndarray, warp, *, saturation: float | None = None,
     it (moving objects). Fewer than :data:`MIN_FRAMES` frames: all healthy.
     """
     read = np.asarray(frames, np.float32)
+    peak = float(np.max(read[0], initial=0.0))
+    if not SAFE_PEAK[0] <= peak <= SAFE_PEAK[1] and peak > 0:  # exact (a power of two), a copy only here
+        read = read / np.float32(power_of_two_scale(read[0]))
     frames = read if exposures is None else Relative(read, np.asarray(exposures, np.float32))
     n_frames, h, w = frames.shape
     codes = np.zeros((h, w), np.uint8)
@@ -397,12 +405,15 @@ def repair(plane: np.ndarray, defective: np.ndarray) -> np.ndarray:
         return image
     image[defective] = 0  # a stuck or hot reading may be anything, inf included
     known = (~defective).astype(np.float32)
+    # summed in units of a power of two near the level where the sums could overflow (exact)
+    unit = power_of_two_scale(image) if float(image.max(initial=0.0)) > SAFE_PEAK[1] else 1.0
+    weight = known / np.float32(unit)
     todo = defective.copy()
     for radius in range(1, REPAIR_ROUNDS + 1):
-        total = window_sum(image * known, 2 * radius + 1)
+        total = window_sum(image * weight, 2 * radius + 1)
         count = window_sum(known, 2 * radius + 1)
         fill = todo & (count > 0.5)
-        image[fill] = total[fill] / count[fill]
+        image[fill] = total[fill] / count[fill] * np.float32(unit)
         todo &= ~fill
         if not todo.any():
             break
