@@ -112,6 +112,7 @@ KERNEL = "cubic"
 #: 2**-126: the variances of readings near 2**64 overflow, and those of readings near 2**-63 underflow.
 SAFE_PEAK = (2.0**-32, 2.0**32)
 
+
 def detect(frames: np.ndarray, warp, *, saturation: float | None = None,
            excluded: np.ndarray | None = None, exposures: np.ndarray | None = None) -> np.ndarray:
     """Defect code of every photosite of one plane, ``(H, W)`` uint8 (:data:`KINDS`).
@@ -124,7 +125,7 @@ def detect(frames: np.ndarray, warp, *, saturation: float | None = None,
     """
     read = np.asarray(frames, np.float32)
     peak = float(np.max(read[0], initial=0.0))
-    if not SAFE_PEAK[0] <= peak <= SAFE_PEAK[1] and peak > 0:  # exact (a power of two), a copy only here
+    if peak > 0 and not SAFE_PEAK[0] <= peak <= SAFE_PEAK[1]:  # exact (a power of two), a copy only here
         read = read / np.float32(power_of_two_scale(read[0]))
     frames = read if exposures is None else Relative(read, np.asarray(exposures, np.float32))
     n_frames, h, w = frames.shape
