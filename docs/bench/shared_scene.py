@@ -25,6 +25,7 @@ import numpy as np
 from scipy.ndimage import gaussian_filter
 
 from gainfpn_cli import api
+from gainfpn_cli.sim.scenes import read_scene
 from gainfpn_cli.sim.sensor import PRESETS
 from gainfpn_cli.sim.simulate import simulate_burst
 
@@ -34,13 +35,15 @@ LEVEL_SIGMA = 8.0  # plane px of the Gaussian means a colour's level is taken fr
 
 
 def scene_of(name):
-    """A built-in scene by name, or scikit-image's sample photograph in colour, linear (gamma 2.2)."""
+    """A built-in scene by name, or scikit-image's sample photograph read as ``gainfpn simulate --scene
+    FILE`` reads it (:func:`read_scene`: linear, gamma 2.2)."""
     if name in ("procedural", "dead-leaves"):
         return name
-    import skimage.data as d
+    from pathlib import Path
 
-    img = getattr(d, name)()
-    return (img[..., :3].astype(np.float32) / 255.0) ** 2.2
+    import skimage.data
+
+    return read_scene(next(Path(skimage.data.data_dir).glob(name + ".*")))
 
 
 def colour_levels(frames):
