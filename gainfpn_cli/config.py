@@ -199,6 +199,11 @@ class SolverConfig:
         "auto", choice("auto", *FPN_MODELS),
         "accurate method: gain FPN model; auto picks the one with the lowest AIC",
     )
+    min_snr: float = _key(
+        5.0, non_negative_float,
+        "photosites whose mean reading is less than this many times its noise (measured on the burst) are not "
+        "solved: k = 1, confidence 0 (0 = every photosite above black)",
+    )
     workers: int = _key(2, positive_int, "processes that solve blocks in parallel")
     max_condition: float = _key(
         1e4, positive_float, "a block system worse conditioned than this gets the smallest ridge that fixes it"

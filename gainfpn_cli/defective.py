@@ -8,6 +8,7 @@ A defect map is ``(H, W, C)`` uint8 like the frames: 0 healthy, else the kind's 
 from __future__ import annotations
 
 from contextlib import contextmanager
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -20,11 +21,20 @@ from .solve import defects as D
 MAX_DEFECTIVE = 0.05
 
 
+@dataclass(frozen=True)
+class Found:
+    """A burst's defect map ``(H, W, C)`` uint8 and each plane's readings' noise against level
+    (plane name -> :class:`solve.noise.NoiseModel`, None where the search could test nothing)."""
+
+    codes: np.ndarray
+    noise: dict
+
+
 def find(frames: np.ndarray, cfa: str | None, channels: tuple[str, ...], *, excluded: np.ndarray | None,
-         exposures: np.ndarray, warp, saturation: float | None, dark_hot: np.ndarray | None = None) -> np.ndarray:
-    """The defect map of a burst ``frames`` ``(F, H, W, C)`` (DN after black, reference first),
-    ``warp`` its motion in frame pixels, ``excluded`` ``(F, H, W)`` the readings of moving objects,
-    ``dark_hot`` ``(H, W, C)`` the hot photosites a dark frame shows (:func:`hot_in_dark`)."""
+         exposures: np.ndarray, warp, saturation: float | None, dark_hot: np.ndarray | None = None) -> Found:
+    """The defect map of a burst ``frames`` ``(F, H, W, C)`` (DN after black, reference first) and its
+    planes' noise, ``warp`` its motion in frame pixels, ``excluded`` ``(F, H, W)`` the readings of
+    moving objects, ``dark_hot`` ``(H, W, C)`` the hot photosites a dark frame shows (:func:`hot_in_dark`)."""
     if saturation is not None:  # a frame at a time: a mask of the stack's channels is 192 MB at 12 MP x 16
         clipped = np.empty(frames.shape[:-1], bool)
         for t, frame in enumerate(frames):
@@ -33,12 +43,13 @@ def find(frames: np.ndarray, cfa: str | None, channels: tuple[str, ...], *, excl
             excluded = clipped if excluded is None else excluded | clipped
         del clipped
     codes = np.zeros(frames.shape[1:], np.uint8)
+    noise = {}
     mask = None if excluded is None else np.broadcast_to(excluded[..., None], frames.shape)
     for name, pick, S in plane_views(cfa, channels):
         plane = pick(frames)
         out = pick(codes[None])[0]
-        out[...] = D.detect(plane, warp.conjugate(S), excluded=None if mask is None else pick(mask),
-                            exposures=exposures)
+        found = D.survey(plane, warp.conjugate(S), excluded=None if mask is None else pick(mask), exposures=exposures)
+        out[...], noise[name] = found.codes, found.noise
         if dark_hot is not None:
             out[(out == D.HEALTHY) & pick(dark_hot[None])[0]] = D.HOT
         fraction = float(np.mean(out > 0))
@@ -46,7 +57,7 @@ def find(frames: np.ndarray, cfa: str | None, channels: tuple[str, ...], *, excl
             raise EstimationError(f"{100 * fraction:.0f} % of the photosites of plane {name} read as defective "
                                   f"(more than {100 * MAX_DEFECTIVE:.0f} %): the frames do not show one scene "
                                   "moving (a blank or corrupted frame?) or the dark frame is not this sensor's")
-    return codes
+    return Found(codes, noise)
 
 
 def hot_in_dark(dark: np.ndarray, cfa: str | None, channels: tuple[str, ...]) -> np.ndarray:

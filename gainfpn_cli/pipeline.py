@@ -12,7 +12,7 @@ import time
 
 import numpy as np
 
-from . import __version__, defective, solving
+from . import __version__, darkness, defective, solving
 from .burst import Estimate, LoadedBurst, Progress
 from .config import Config, config_dict
 from .errors import EstimationError, InputError, TrackingError
@@ -142,10 +142,13 @@ def _estimate(burst: LoadedBurst, cfg: Config, solver: solving.Solver, progress:
     del motion_images
     timings["motion_s"] = time.perf_counter() - t0
     codes = None
-    if cfg.input.defects:
+    if cfg.input.defects or cfg.solver.min_snr > 0:  # the search measures the readings' noise too
         t0 = time.perf_counter()
-        codes = defective.find(frames, burst.cfa, burst.channels, excluded=excluded, exposures=exposures,
+        found = defective.find(frames, burst.cfa, burst.channels, excluded=excluded, exposures=exposures,
                                warp=in_frame, saturation=burst.saturation, dark_hot=burst.dark_hot)
+        codes = found.codes if cfg.input.defects else None
+        if cfg.solver.min_snr > 0:
+            solver = dataclasses.replace(solver, floors=darkness.floors(found.noise, cfg.solver.min_snr))
         timings["defects_s"] = time.perf_counter() - t0
 
     # the defects' readings are replaced from their neighbours while they are solved and checked
@@ -170,6 +173,9 @@ def _estimate(burst: LoadedBurst, cfg: Config, solver: solving.Solver, progress:
         solver, fit, k, confidence = solved.solver, solved.fit, solved.k, solved.confidence
         motion, in_frame, excluded, moving = fit.motion, fit.in_frame, fit.excluded, fit.moving
         plane_reports, holdout_report = solved.reports, solved.holdout
+        plane_reports, dark_warnings = darkness.reported(burst, fit_frames, solver.floors, plane_reports,
+                                                         cfg.solver.min_snr)
+        warnings.extend(dark_warnings)
         timings["solve_s"] = chosen_s + sum(t.solve_s for t in tried or [solved])
         if holdout:
             timings["holdout_s"] = sum(t.holdout_s for t in tried or [solved])

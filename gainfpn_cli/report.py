@@ -202,6 +202,8 @@ class PlaneReport:
     fpn_model_aic: dict | None = None
     input_fpn_percent: dict | None = None
     confidence_calibrated: bool = False
+    floor_dn: float | None = None  # photosites whose mean reading is at or below this were not solved
+    too_dark_percent: float | None = None  # ... this share of the plane's
 
     def to_json(self) -> dict:
         """Flat, as ``report.json`` holds it: the method, the solver's counts, then the rest."""
@@ -209,13 +211,15 @@ class PlaneReport:
         if self.fpn_model is not None:
             data.update(fpn_model=self.fpn_model, fpn_model_aic=self.fpn_model_aic,
                         input_fpn_percent=self.input_fpn_percent, confidence_calibrated=self.confidence_calibrated)
+        if self.floor_dn is not None:
+            data.update(floor_dn=self.floor_dn, too_dark_percent=self.too_dark_percent)
         return data
 
     @classmethod
     def from_json(cls, data: dict) -> "PlaneReport":
         return cls(data["method"], data["solved_on"], stats_from_json(data["method"], data),
                    data.get("fpn_model"), data.get("fpn_model_aic"), data.get("input_fpn_percent"),
-                   data.get("confidence_calibrated", False))
+                   data.get("confidence_calibrated", False), data.get("floor_dn"), data.get("too_dark_percent"))
 
 
 @dataclass(frozen=True)

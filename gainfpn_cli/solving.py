@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .burst import LoadedBurst
+from .darkness import too_dark
 from .errors import EstimationError
 from .geometry.planes import plane_views, solve_grids
 from .geometry.resample import positions as warp_positions
@@ -22,7 +23,7 @@ from .solve.accurate import AccurateOptions, solve_accurate, solve_accurate_many
 from .solve.aliasing import aliasing
 from .solve.blocks import solve_paper
 from .solve.fpnmodel import Halves, select_model
-from .solve.holdout import holdout_checks, pooled
+from .solve.holdout import disagreement, holdout_checks, pooled
 from .solve.kkt import SolveOptions
 from .solve.result import (
     GainResult,
@@ -47,6 +48,7 @@ class Solver:
     gain_range: tuple[float, float]
     workers: int
     executor: object = None
+    floors: dict | None = None  # plane name -> level (DN) at or below which a photosite is not solved
 
     @classmethod
     def from_config(cls, s, *, mosaic: bool, executor=None) -> "Solver":
@@ -304,6 +306,7 @@ def _jobs(burst, frames, excluded, exposures, useds, in_frame, solver: Solver, r
     for i, used in enumerate(useds):
         fit = frames[used]  # a slice: a view
         left_out = None if excluded is None else np.broadcast_to(excluded[used, ..., None], fit.shape)  # every channel
+        dark = too_dark(burst, fit, solver.floors)
         motion = in_frame.select(range(len(frames))[used])
         for grid in grids_of(burst, frames, solver.method):
             if regions is not None and grid.name not in regions:
@@ -312,12 +315,17 @@ def _jobs(burst, frames, excluded, exposures, useds, in_frame, solver: Solver, r
             if regions is None:
                 grid_frames = grid.gather(fit)
                 grid_left_out = None if left_out is None else grid.gather(left_out)
+                grid_dark = None if dark is None else grid.gather(dark)
             else:
                 rows, columns = regions[grid.name]
                 grid_frames = _gather_region(grid, fit, rows, columns)
                 grid_left_out = None if left_out is None else _gather_region(grid, left_out, rows, columns)
+                grid_dark = None if dark is None else grid.gather(dark)[rows, columns]
                 grid_motion = grid_motion.conjugate(np.array([[1.0, 0, columns.start], [0, 1.0, rows.start],
                                                               [0, 0, 1]]))
+            if grid_dark is not None and grid_dark.any():  # every reading of a photosite too dark, left out
+                grid_left_out = np.broadcast_to(grid_dark, grid_frames.shape) if grid_left_out is None \
+                    else grid_left_out | grid_dark
             jobs.append((i, grid, (grid_frames, grid_left_out, grid_motion, exposures[used])))
     return jobs
 
@@ -391,18 +399,6 @@ def check(burst, frames, excluded, exposures, n_fit, in_frame, solver: Solver, r
     planes = {name: PlaneCheck(c.ratio, c.standard_error, c.passed(CHECK_Z), c.left_out, sides[name])
               for name, c in checks.items()}
     return Holdout(held_out, every.ratio, len(failed) < len(grids), every.standard_error, planes), failed
-
-
-def disagreement(k_check, confidence_check, k, confidence, *, calibrated: bool) -> np.ndarray:
-    """``(k_check - k)^2``, in the two maps' combined variance where their confidence is a standard
-    error (``calibrated``; the paper's block solver has none); 0 where either is unestimated."""
-    both = (confidence_check > 0) & (confidence > 0)
-    squared = np.where(both, k_check - k, np.float32(0)) ** 2
-    if calibrated:
-        variance = sigma_from_confidence(np.where(both, confidence_check, 1)) ** 2 \
-            + sigma_from_confidence(np.where(both, confidence, 1)) ** 2
-        squared = np.where(both, squared / np.maximum(variance, np.float32(1e-12)), np.float32(0))
-    return squared
 
 
 def rejection(holdout: Holdout, failed) -> str:

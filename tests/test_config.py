@@ -126,6 +126,7 @@ STRATEGIES = {
     "motion.refine_rounds": st.integers(0, 5),
     "motion.mask_moving": st.booleans(),
     "solver.robust_rounds": st.integers(0, 5),
+    "solver.min_snr": st.floats(0, 1e3, allow_nan=False),
     "output.holdout": st.booleans(),
     "output.repair": st.booleans(),
     "solver.method": st.sampled_from(["accurate", "paper", "scene"]),

@@ -71,7 +71,7 @@ def test_stuck_photosites_are_found_in_frames_of_different_exposures():
                            exposure_jitter=0.1, defects=0.01, seed=5)
     frames = (burst.frames.astype(np.float32) - MONO.black_level)[..., None]
     codes = defective.find(frames, None, ("Y",), excluded=None, exposures=burst.exposures,
-                           warp=GlobalWarp(burst.homographies), saturation=burst.saturation)[..., 0]
+                           warp=GlobalWarp(burst.homographies), saturation=burst.saturation).codes[..., 0]
     stuck = burst.defects == D.STUCK
     assert np.ptp(burst.exposures) > 0.1 and stuck.sum() >= 20
     # every one flagged, 27 of 29 as stuck (2 stuck near black read as dead), as without the jitter

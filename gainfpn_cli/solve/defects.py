@@ -41,11 +41,14 @@ error scatters a healthy photosite's readings as much (docs/limits.md).
 from __future__ import annotations
 
 import warnings
+from dataclasses import dataclass
 
 import numpy as np
 
 from ..geometry.resample import sample, valid_samples, window_sum
 from ..metrics import MAD_TO_SIGMA
+from .noise import NoiseModel
+from .noise import fit as fit_noise
 from .stacks import Relative, nan_median, strips
 from .tiling import power_of_two_scale
 
@@ -115,23 +118,40 @@ SAFE_PEAK = (2.0**-32, 2.0**32)
 
 def detect(frames: np.ndarray, warp, *, saturation: float | None = None,
            excluded: np.ndarray | None = None, exposures: np.ndarray | None = None) -> np.ndarray:
-    """Defect code of every photosite of one plane, ``(H, W)`` uint8 (:data:`KINDS`).
+    """Defect code of every photosite of one plane, ``(H, W)`` uint8 (:data:`KINDS`): :func:`survey`'s."""
+    return survey(frames, warp, saturation=saturation, excluded=excluded, exposures=exposures).codes
+
+
+@dataclass(frozen=True)
+class Survey:
+    """One plane's defect codes ``(H, W)`` uint8 (:data:`KINDS`) and its readings' noise against
+    level, in the frames' units (None where nothing could be tested: too few frames)."""
+
+    codes: np.ndarray
+    noise: NoiseModel | None
+
+
+def survey(frames: np.ndarray, warp, *, saturation: float | None = None,
+           excluded: np.ndarray | None = None, exposures: np.ndarray | None = None) -> Survey:
+    """The defects of one plane and the noise of its readings.
 
     ``frames`` ``(F, H, W)`` are as read (black subtracted); ``exposures`` ``(F,)``, each frame's
     exposure relative to the reference's, brings them to the reference's (a stuck photosite reads
     one value as read, not after). ``warp`` maps between their grids (``pair(s, t,
     region)``, :mod:`geometry.warps`), ``excluded`` ``(F, H, W)`` marks readings that do not follow
-    it (moving objects). Fewer than :data:`MIN_FRAMES` frames: all healthy.
+    it (moving objects). Fewer than :data:`MIN_FRAMES` frames: all healthy, noise unknown.
     """
     read = np.asarray(frames, np.float32)
-    peak = float(np.max(read[0], initial=0.0))
+    peak, unit = float(np.max(read[0], initial=0.0)), 1.0
     if peak > 0 and not SAFE_PEAK[0] <= peak <= SAFE_PEAK[1]:  # exact (a power of two), a copy only here
-        read = read / np.float32(power_of_two_scale(read[0]))
+        unit = power_of_two_scale(read[0])
+        read = read / np.float32(unit)
+        saturation = None if saturation is None else saturation / unit  # in the same units
     frames = read if exposures is None else Relative(read, np.asarray(exposures, np.float32))
     n_frames, h, w = frames.shape
     codes = np.zeros((h, w), np.uint8)
     if n_frames < MIN_FRAMES:
-        return codes
+        return Survey(codes, None)
 
     def good(t: int, frame: np.ndarray) -> np.ndarray:  # frame t's readings below saturation, following the motion
         below = frame < (np.inf if saturation is None else saturation)
@@ -148,7 +168,7 @@ def detect(frames: np.ndarray, warp, *, saturation: float | None = None,
     response, scatter, n, lowest, highest = _responses(frames, x, usable)
     tested = n >= MIN_FRAMES
     if not tested.any():
-        return codes
+        return Survey(codes, None)
     # the plane's spread, or its neighbourhood's where larger: beside an edge or a border the
     # prediction misses, consistently over the frames, for every photosite around
     typical, plane_spread, spread = _robust_spread(response, tested)
@@ -162,7 +182,7 @@ def detect(frames: np.ndarray, warp, *, saturation: float | None = None,
 
     dead = tested & (response < DEAD_RESPONSE * typical) & (highest < DEAD_CEILING * typical) & (z < -Z_DEFECT)
     whole = usable.all(axis=0) & ~dead
-    noise = _noise_model(*_level_and_scatter(frames, x, response, whole), n_frames)
+    noise = fit_noise(*_level_and_scatter(frames, x, response, whole), n_frames)
     stuck = ~dead & _stuck(frames, read, always, x, typical, noise, step)
     usable &= from_frames  # from here on, only readings the other frames predict
     hot = (z > np.where(usable.sum(axis=0) >= MIN_FRAMES, Z_DEFECT, BORDER_Z * Z_DEFECT)) & (lowest > typical)
@@ -171,7 +191,7 @@ def detect(frames: np.ndarray, warp, *, saturation: float | None = None,
     hot &= tested & ~dead & ~stuck
     for mask, code in ((dead, DEAD), (stuck, STUCK), (hot, HOT)):
         codes[mask] = code
-    return codes
+    return Survey(codes, noise.scaled(unit))
 
 
 def _predictions(frames: np.ndarray, good, warp) -> tuple[np.ndarray, ...]:
@@ -336,30 +356,6 @@ def _stuck(frames: np.ndarray, read: np.ndarray, whole: np.ndarray, x: np.ndarra
     expected = np.fmin(np.nan_to_num(around, nan=np.inf), (typical * scene) ** 2 + noise(np.maximum(middle, 0.0)))
     stuck[at] = (expected > (QUANTISED_STEPS * step) ** 2) & (spread < STUCK_SPREAD**2 * expected)
     return stuck
-
-
-def _noise_model(level: np.ndarray, scatter: np.ndarray, n: int):
-    """A reading's temporal noise variance against level, ``v = c0 + c1 level`` (read and shot
-    noise), fitted to the quietest quarter of the photosites in each of 8 level bins: their
-    scatter about the predicted scene is the noise with the least prediction error on top.
-    ``scatter`` is each photosite's variance about the scene, from ``n - 1`` degrees of freedom."""
-    from scipy.special import gammaincinv  # chi2.ppf(q, k) = 2 gammaincinv(k / 2, q), without scipy.stats' import
-
-    quarter = 2.0 * gammaincinv((n - 1) / 2.0, 0.25) / (n - 1)  # lower quartile of a variance estimate, in variances
-    edges = np.quantile(level, np.linspace(0, 1, 9))
-    centres, values = [], []
-    for lo, hi in zip(edges[:-1], edges[1:]):
-        inside = (level >= lo) & (level <= hi)
-        if inside.sum() >= 16:
-            centres.append(float(np.median(level[inside])))
-            values.append(float(np.quantile(scatter[inside], 0.25)) / quarter)
-    if not values:
-        return lambda lv: np.zeros(np.shape(lv))
-    c1, c0 = np.polyfit(centres, values, 1) if len(centres) >= 2 else (0.0, values[0])
-    if c1 < 0:  # noise does not fall with the level: a constant
-        c1, c0 = 0.0, float(np.median(values))
-    c0 = max(float(c0), 0.0)
-    return lambda lv: c0 + c1 * np.asarray(lv, np.float64)
 
 
 def _quantisation_step(frames: np.ndarray) -> float:

@@ -32,6 +32,7 @@ import numpy as np
 from scipy.ndimage import gaussian_filter
 
 from ..geometry.resample import sample, valid_samples
+from .result import sigma_from_confidence
 from .tiling import power_of_two_scale
 
 #: Side (px) of the square blocks the residuals are summed over for the jackknife: larger than
@@ -164,3 +165,15 @@ def _jackknife(num: np.ndarray, den: np.ndarray) -> Check:
     n = len(den)
     se = float(np.sqrt((n - 1) / n * np.sum((left_out - left_out.mean()) ** 2)))
     return Check(total_num / total_den, se, num, den)
+
+
+def disagreement(k_check, confidence_check, k, confidence, *, calibrated: bool) -> np.ndarray:
+    """``(k_check - k)^2``, in the two maps' combined variance where their confidence is a standard
+    error (``calibrated``; the paper's block solver has none); 0 where either is unestimated."""
+    both = (confidence_check > 0) & (confidence > 0)
+    squared = np.where(both, k_check - k, np.float32(0)) ** 2
+    if calibrated:
+        variance = sigma_from_confidence(np.where(both, confidence_check, 1)) ** 2 \
+            + sigma_from_confidence(np.where(both, confidence, 1)) ** 2
+        squared = np.where(both, squared / np.maximum(variance, np.float32(1e-12)), np.float32(0))
+    return squared
