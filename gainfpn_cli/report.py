@@ -192,8 +192,11 @@ class PlaneReport:
     """How one plane (a CFA colour, or Y) was solved: the solver (``paper`` / ``accurate``), the
     grid it was solved on (a CFA's two greens together for the accurate solver), the solver's
     counts, and for the accurate solver the FPN model chosen, every model's AIC, the input
-    FPN split into EMVA 1288's parts (percent) and whether the confidence was calibrated on two
-    halves of the frames (:func:`solve.fpnmodel.calibrate`)."""
+    FPN split into EMVA 1288's parts (percent), whether the confidence was calibrated on two
+    halves of the frames (:func:`solve.halves.calibrate`) and how far the column gains of the
+    plane's top and bottom agree (standard errors; the column models are candidates from
+    :data:`solve.fpnmodel.COLUMN_Z` on; None where that gate is not applied: k's error not measured
+    on halves, or too few columns)."""
 
     method: str
     solved_on: str
@@ -202,6 +205,7 @@ class PlaneReport:
     fpn_model_aic: dict | None = None
     input_fpn_percent: dict | None = None
     confidence_calibrated: bool = False
+    column_agreement: float | None = None
     floor_dn: float | None = None  # photosites whose mean reading is at or below this were not solved
     too_dark_percent: float | None = None  # ... this share of the plane's
 
@@ -210,7 +214,8 @@ class PlaneReport:
         data = {"method": self.method, **vars(self.solver), "solved_on": self.solved_on}
         if self.fpn_model is not None:
             data.update(fpn_model=self.fpn_model, fpn_model_aic=self.fpn_model_aic,
-                        input_fpn_percent=self.input_fpn_percent, confidence_calibrated=self.confidence_calibrated)
+                        input_fpn_percent=self.input_fpn_percent, confidence_calibrated=self.confidence_calibrated,
+                        column_agreement=self.column_agreement)
         if self.floor_dn is not None:
             data.update(floor_dn=self.floor_dn, too_dark_percent=self.too_dark_percent)
         return data
@@ -219,7 +224,8 @@ class PlaneReport:
     def from_json(cls, data: dict) -> "PlaneReport":
         return cls(data["method"], data["solved_on"], stats_from_json(data["method"], data),
                    data.get("fpn_model"), data.get("fpn_model_aic"), data.get("input_fpn_percent"),
-                   data.get("confidence_calibrated", False), data.get("floor_dn"), data.get("too_dark_percent"))
+                   data.get("confidence_calibrated", False), data.get("column_agreement"), data.get("floor_dn"),
+                   data.get("too_dark_percent"))
 
 
 @dataclass(frozen=True)

@@ -22,7 +22,8 @@ from .solve import bootstrap
 from .solve.accurate import AccurateOptions, solve_accurate, solve_accurate_many
 from .solve.aliasing import aliasing
 from .solve.blocks import solve_paper
-from .solve.fpnmodel import Halves, select_model
+from .solve.fpnmodel import select_model
+from .solve.halves import Halves
 from .solve.holdout import disagreement, holdout_checks, pooled
 from .solve.kkt import SolveOptions
 from .solve.result import (
@@ -161,7 +162,7 @@ def solve_planes(burst, frames, excluded, exposures, used: slice, in_frame, solv
                   regions: dict | None = None, models: dict | None = None, split: bool = False,
                   calibrations: dict | None = None):
     """k and confidence of every plane from the frames ``used``, with the FPN model and the gauge,
-    and each plane's report and calibration (:class:`solve.fpnmodel.Calibration`, or None).
+    and each plane's report and calibration (:class:`solve.halves.Calibration`, or None).
 
     ``regions`` (grid name -> (rows, columns) slices) solves only there, and only the grids it names
     (k = 1 and confidence 0 elsewhere); ``models`` (plane name -> FPN model) forces each plane's model;
@@ -195,7 +196,9 @@ def solve_planes(burst, frames, excluded, exposures, used: slice, in_frame, solv
                                  sigma_calibrated=True)
             measured = model.sigma is not None and (model.calibration.measured or solver.method == "scene")
             report = dataclasses.replace(report, fpn_model=model.chosen, fpn_model_aic=model.scores,
-                                         input_fpn_percent=model.split, confidence_calibrated=measured)
+                                         input_fpn_percent=model.split, confidence_calibrated=measured,
+                                         column_agreement=(round(float(model.column_agreement), 2)
+                                                           if np.isfinite(model.column_agreement) else None))
             kp, structured, calibration = model.k, model.chosen not in ("pixel", "none"), model.calibration
             if model.sigma is not None:
                 pick(confidence)[...] = np.where(pick(confidence) > 0, confidence_from_sigma(model.sigma), 0)
@@ -214,7 +217,7 @@ MIN_SPLIT_FRAMES = 6
 
 def bootstrapped(burst, frames, excluded, exposures, used: slice, in_frame, solver: Solver, progress, k,
                  confidence) -> dict:
-    """Each plane's :class:`solve.fpnmodel.Calibration` of the accurate solver's sigma_k, measured on the
+    """Each plane's :class:`solve.halves.Calibration` of the accurate solver's sigma_k, measured on the
     burst the scene model fitted to the frames ``used`` predicts (:mod:`solve.bootstrap`), on the
     :func:`central` regions; ``k`` and ``confidence`` are the fit's, frame-shaped. Planes with too few
     pixels measured, and a CFA mosaic's (whose colour planes' latent scene is still aliased: docs/method.md

@@ -7,9 +7,15 @@ from gainfpn_cli import metrics
 from gainfpn_cli.geometry.resample import masked_window_mean, window_sum
 from gainfpn_cli.sim.sensor import PRESETS, with_overrides
 from gainfpn_cli.sim.simulate import simulate_burst
+from gainfpn_cli.solve import fpnmodel
 from gainfpn_cli.solve.accurate import solve_accurate
-from gainfpn_cli.solve.fpnmodel import (MODELS, Halves, calibrate, departure, pixel_prior_variance, select_model,
-                                       structured_parts)
+from gainfpn_cli.solve.fpnmodel import (
+    MODELS,
+    pixel_prior_variance,
+    select_model,
+    structured_parts,
+)
+from gainfpn_cli.solve.halves import Calibration, Halves, calibrate, departure
 from gainfpn_cli.solve.result import sigma_from_confidence
 
 SIGMA = 0.005  # standard error of every synthetic k
@@ -145,9 +151,35 @@ def test_end_to_end_column_sensor_gets_a_column_model():
     result = solve_accurate(frames, burst.homographies, saturation=burst.saturation, workers=1)
     model = select_model(result.k, result.confidence)
     assert model.chosen in ("column", "column+row")
+    weight = np.where(result.confidence > 0, 1 / np.maximum(sigma_from_confidence(result.confidence), 1e-6) ** 2, 0)
+    assert fpnmodel.column_agreement(result.k, weight.astype(np.float32)) > fpnmodel.COLUMN_Z  # measured 17
     mask = (result.confidence > 0) & metrics.interior_mask(frames.shape[1:], 8)
     assert metrics.residual_fpn_percent(model.k, burst.gain, mask) < metrics.residual_fpn_percent(
         result.k, burst.gain, mask)
+
+
+def test_an_error_along_part_of_a_column_is_not_taken_for_column_fpn(monkeypatch):
+    # each column's k errs by 1 % in its top half and independently in its bottom half (a vertical
+    # edge's interpolation error): AIC alone fits it with a column model, which the pixel model then
+    # builds on; a sensor's column FPN runs down the whole column (the column tests above). The gate
+    # applies where k's error is measured: here a calibration given (factor 1, the true pixel FPN)
+    shipped = fpnmodel.COLUMN_Z
+    measured = Calibration(np.zeros(1), np.ones(1), 0.01**2)
+
+    def case(seed, gate):
+        rng = np.random.default_rng(seed)
+        k, confidence, a = _k_map(rng, pixel=0.01)
+        k[:40] *= 1 + 0.01 * rng.standard_normal(k.shape[1])
+        k[40:] *= 1 + 0.01 * rng.standard_normal(k.shape[1])
+        monkeypatch.setattr(fpnmodel, "COLUMN_Z", shipped if gate else -np.inf)
+        model = select_model(k, confidence, calibration=measured)
+        assert abs(model.column_agreement) < 2.0
+        return 100 * np.std(model.k * a / np.mean(model.k * a))
+
+    for seed in range(6):  # measured 0.91-1.07 % with the gate, 0.95-1.11 % by AIC alone
+        assert case(seed, gate=True) < case(seed, gate=False) - 0.015
+    k, confidence, _ = _k_map(np.random.default_rng(0), pixel=0.01)
+    assert np.isnan(select_model(k, confidence).column_agreement)  # not measured: AIC alone
 
 
 def _halves(rng, *, pixel=0.02, factor=2.0, shape=(160, 200)):

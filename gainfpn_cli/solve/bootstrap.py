@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .fpnmodel import MAX_PARTS, MIN_PARTS, PART_PIXELS, Calibration
+from .halves import MAX_PARTS, MIN_PARTS, PART_PIXELS, Calibration
 from .scene import prepare
 from .scenemodel import fit_tile
 from .tiling import Tile, power_of_two_scale, ramp_sums, solve_tiles
@@ -83,9 +83,9 @@ def synthetic_burst(rendered: Rendered, gain: np.ndarray, rng: np.random.Generat
 
 
 def calibration(sigma: np.ndarray, error: np.ndarray, mask: np.ndarray) -> Calibration | None:
-    """The :class:`solve.fpnmodel.Calibration` that scales ``sigma`` (a fit's ``sigma_k``) to the RMS of
+    """The :class:`solve.halves.Calibration` that scales ``sigma`` (a fit's ``sigma_k``) to the RMS of
     ``error`` (the same fit's error on a synthetic burst) in each tenth of ``sigma`` over ``mask``
-    (fewer parts on fewer pixels, as :func:`solve.fpnmodel.calibrate`), never scaled down: the
+    (fewer parts on fewer pixels, as :func:`solve.halves.calibrate`), never scaled down: the
     synthetic burst's noise is the share the scene model's fit left in its residuals, so a smaller
     error there is its noise missing, not ``sigma`` too large (docs/method.md section 11). Its pixel
     FPN prior is left to the deviations (None). None where too few pixels are measured."""

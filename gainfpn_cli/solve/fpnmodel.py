@@ -27,7 +27,11 @@ noise it misses and that score would pick the pixel model on a column-FPN
 sensor.) AIC
 estimates the prediction error on held-out data (it is asymptotically
 leave-one-out cross-validation, Stone 1977), which is what matters when the
-map corrects other captures.
+map corrects other captures. AIC counts the pixels as independent, so an error that runs along
+part of a column (interpolating a vertical edge) fits a column model as well as column FPN does;
+where k's error is measured (halves, below) a column model is a candidate only if column gains
+fitted on the top and bottom halves of the plane apart agree (:func:`column_agreement`), as a
+sensor's column FPN does and an edge's does not.
 
 Once chosen, the pixel model does not take each pixel's k as it is: a pixel
 whose k is uncertain would carry its whole estimation error into the
@@ -63,9 +67,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..geometry.resample import masked_window_mean
 from ..metrics import robust_spread
 from . import FPN_MODELS
+from .halves import Calibration, Halves, calibrate, departure
 from .result import regauge, sigma_from_confidence
 
 MODELS = FPN_MODELS
@@ -92,6 +96,10 @@ class FPNModel:
         With a calibration, the predicted standard error of each written k:
         the calibrated ``sigma_k`` shrunk with k (``sqrt(w) sigma_k``) by the
         pixel model, as it is under a structured one (an upper bound there).
+    column_agreement : float
+        How far column gains fitted on the top and bottom halves apart agree, in standard errors
+        (:func:`column_agreement`): the column models are candidates at :data:`COLUMN_Z` or more.
+        NaN where the gate is not applied (k's error not measured on halves; too few columns).
     """
 
     k: np.ndarray
@@ -100,157 +108,7 @@ class FPNModel:
     split: dict = field(default_factory=dict)
     calibration: Calibration | None = None
     sigma: np.ndarray | None = None  # with a calibration: the predicted standard error of k
-
-
-@dataclass(frozen=True)
-class Halves:
-    """k fitted again on two disjoint halves of the frames (before any FPN model), on part of the
-    plane: confidence 0 where a half has no estimate."""
-
-    k_a: np.ndarray
-    confidence_a: np.ndarray
-    k_b: np.ndarray
-    confidence_b: np.ndarray
-
-
-@dataclass(frozen=True)
-class Calibration:
-    """What two halves measured (:func:`calibrate`): the factor that scales ``sigma_k`` to k's
-    actual error, at the RMS ``sigma_k`` of each decile (between them, interpolated in
-    ``log sigma_k``; beyond them, the end ones), and the pixel FPN prior ``s^2`` (None: from the
-    deviations). ``measured`` is False for the solver's ``sigma_k`` taken as it is (factor 1)."""
-
-    log_sigma: np.ndarray
-    factor: np.ndarray
-    prior: float | None
-    measured: bool = True
-
-    def sigma(self, sigma: np.ndarray) -> np.ndarray:
-        """``sigma_k`` (the solver's) scaled to k's actual error; inf stays inf."""
-        sigma = np.asarray(sigma, np.float32)
-        finite = np.isfinite(sigma) & (sigma > 0)
-        scale = np.interp(np.log(np.where(finite, sigma, 1)), self.log_sigma, self.factor).astype(np.float32)
-        return np.where(finite, sigma * scale, sigma)
-
-
-#: Side (px) of the window whose mean sigma_k^2 orders the deciles the pixel FPN is pooled over
-#: (:func:`local_sigma2`, :func:`_prior`).
-LOCAL_WINDOW = 5
-
-
-def local_sigma2(sigma: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """The mean ``sigma_k^2`` over the :data:`LOCAL_WINDOW` window's ``mask`` pixels (0 where there are
-    none). A pixel's own sigma_k falls with its own gain (its readings' information), so its
-    deciles would slice the pixel FPN itself where the scene is flat; the window's mean follows the scene.
-    (k's error does follow a pixel's own sigma_k: the calibration's deciles are by that.)"""
-    return masked_window_mean(np.asarray(sigma, np.float32) ** 2, mask, LOCAL_WINDOW)
-
-
-#: Pixels in each part (a tenth of sigma_k, or fewer parts of a plane with fewer pixels) that
-#: :func:`calibrate` measures a factor on: 1000 give it to about 5 %.
-PART_PIXELS = 1000
-#: Most parts :func:`calibrate` cuts the pixels into: tenths of sigma_k.
-MAX_PARTS = 10
-#: Fewest parts :func:`calibrate` measures: with fewer, one part whose halves' covariance reads low takes
-#: the pooled pixel FPN to 0 and the map to k = 1. Measured (mono 12-bit dark dead leaves, 6 fitted frames,
-#: 16 seeds, MSE ratio on an unseen frame before the check, geometric mean; the solver's sigma_k -> halves):
-#: 64x80 (4 parts) 1.645 -> 1.515, 3 maps lost; 80x96 (6 parts) 1.618 -> 1.581, one lost, one mended. On
-#: 160x192 RGGB bursts (planes of 80x96, 6 parts) k errs 1.00-1.09x the written sigma_k, plane by plane.
-MIN_PARTS = 6
-#: Smallest factor :func:`calibrate` gives ``sigma_k``: a decile whose measured error variance is
-#: 0 or below (a chance of its own noise) must not make k certain.
-MIN_FACTOR = 0.1
-
-
-#: A decile's error beyond the halves' Hausman difference (one they share) is taken in with the weight
-#: ``t^2 / (SHARED_T2 + t^2)``, ``t`` the excess over its standard error: half of it at 2 standard errors.
-#: Measured on synthetic halves (30 seeds, decile factors against the truth): with no shared error, 4 %
-#: RMS (a hard cut at 3 standard errors: 1 %, full weight: 6.5 %); on a 9-frame camera RGGB burst, whose
-#: shared error stands 2-5 standard errors out, the four planes' residual 1.09 % (a hard cut: 1.17 %,
-#: without this term 1.19 %; true FPN 1.0 %; measured with the FPN pooled over deciles of the pixel's own
-#: sigma_k, which gave the chosen weight's 1.09 % as the window's does).
-SHARED_T2 = 4.0
-#: A decile's covariance of the halves' deviations above the pooled pixel FPN variance by more than
-#: this many standard errors holds an error the halves share, and is left out of the FPN (:func:`_prior`).
-PRIOR_Z = 2.0
-
-
-#: Side (px) of the window :func:`departure` compares the full fit with the halves' mean over.
-DEPARTURE_WINDOW = 5
-#: How far (in variance) the full fit must stray from the halves' mean, over the spread the halves
-#: give that mean, before :func:`departure` counts it: under a consistent fit the ratio's expectation
-#: is at most 1, and a 5x5 window of errors correlated over a few pixels has few degrees of freedom.
-DEPARTURE_RATIO = 4.0
-
-
-def departure(k: np.ndarray, halves: Halves, est: np.ndarray) -> np.ndarray:
-    """The variance of an error the full fit ``k`` has and neither half does: the local mean square
-    of ``k - (k_a + k_b) / 2`` beyond the halves' own spread ``((k_a - k_b) / 2)^2`` where it is more
-    than :data:`DEPARTURE_RATIO` times that spread, else 0 (and 0 where a half has no estimate).
-
-    The full fit is the halves' average plus what their cross comparisons add, so it strays from
-    that average by no more than the average's own error; a mode it pins down worse than either
-    half (a frame edge that trajectories leave, comparisons of near frames only) strays further,
-    and the halves' Hausman difference (:func:`calibrate`) reads that as a smaller error, not a
-    larger one."""
-    both = est & (halves.confidence_a > 0) & (halves.confidence_b > 0)
-    k_a, k_b = (np.asarray(m, np.float32) for m in (halves.k_a, halves.k_b))  # plane-sized: float32
-    stray = masked_window_mean((np.asarray(k, np.float32) - (k_a + k_b) / 2) ** 2, both, DEPARTURE_WINDOW)
-    spread = masked_window_mean(((k_a - k_b) / 2) ** 2, both, DEPARTURE_WINDOW)
-    return np.where(both & (stray > DEPARTURE_RATIO * spread), stray - spread, np.float32(0))
-
-
-def calibrate(k: np.ndarray, sigma: np.ndarray, halves: Halves, base: np.ndarray,
-              est: np.ndarray) -> Calibration | None:
-    """The :class:`Calibration` that ``halves`` measure of the full fit ``k`` (``sigma`` its
-    solver's ``sigma_k``), with ``base`` the structured model the pixel FPN deviates from; None
-    where all three fits see too few pixels for :data:`MIN_PARTS` parts of :data:`PART_PIXELS`."""
-    both = est & (halves.confidence_a > 0) & (halves.confidence_b > 0) & np.isfinite(sigma)
-    count = min(int(both.sum()) // PART_PIXELS, MAX_PARTS)
-    if count < MIN_PARTS:
-        return None
-    s = sigma[both].astype(np.float64)
-    k_full, k_a, k_b = (np.asarray(m, np.float64)[both] for m in (k, halves.k_a, halves.k_b))
-    d_full, d_a, d_b = k_full - base[both], k_a - base[both], k_b - base[both]
-    parts = np.array_split(np.argsort(s), count)
-    prior, prior_se = _prior(d_a, d_b, np.array_split(np.argsort(local_sigma2(sigma, both)[both]), count))
-    log_sigma, factor = [], []
-    for part in parts:
-        square = float(np.mean(s[part] ** 2))
-        cross = (k_a[part] - k_full[part]) * (k_b[part] - k_full[part])
-        error = -float(np.mean(cross))  # the Hausman difference: what the halves do not share
-        # all of k's error: its deviations' variance less the pixel FPN's (FPN does not know the scene;
-        # about the decile's mean, which a decile of a flat scene's sigma_k shifts with the gains)
-        beyond = (d_full[part] - d_full[part].mean()) ** 2 + cross
-        shared = max(float(np.mean(beyond)) - prior, 0.0)
-        t2 = shared**2 / max(float(np.var(beyond)) / len(part) + prior_se**2, np.finfo(float).tiny)
-        error += shared * t2 / (SHARED_T2 + t2)  # taken in as far as it stands out of its own noise
-        log_sigma.append(0.5 * np.log(square))
-        factor.append(max(np.sqrt(max(error, 0.0) / square), MIN_FACTOR))
-    return Calibration(np.array(log_sigma), np.array(factor), prior)
-
-
-def _prior(d_a: np.ndarray, d_b: np.ndarray, parts) -> tuple[float, float]:
-    """The pixel FPN's variance and its standard error: the covariance of the halves' deviations,
-    pooled over the parts (deciles of sigma_k) that agree with it.
-
-    An error both halves share (interpolating a sharp scene) enters their covariance too, most where
-    sigma_k is large; the pixel FPN does not know the scene and is the same in every part. The parts
-    are taken from the most precise on, each one whose covariance is not above the pooled one by more
-    than :data:`PRIOR_Z` standard errors, and pooled with the inverse of their sampling variances."""
-    covs, variances = [], []
-    for part in parts:
-        a, b = d_a[part] - d_a[part].mean(), d_b[part] - d_b[part].mean()
-        cov = float(np.mean(a * b))
-        covs.append(cov)
-        variances.append(max(float(np.mean(a * a) * np.mean(b * b)) + cov**2, np.finfo(float).tiny) / len(part))
-    pooled, weight = 0.0, 0.0
-    for j in np.argsort(variances):
-        if weight > 0 and covs[j] - pooled > PRIOR_Z * np.sqrt(variances[j] + 1.0 / weight):
-            continue
-        pooled = (pooled * weight + covs[j] / variances[j]) / (weight + 1.0 / variances[j])
-        weight += 1.0 / variances[j]
-    return max(pooled, 0.0), float(1.0 / np.sqrt(weight))
+    column_agreement: float = float("nan")
 
 
 @dataclass(frozen=True)
@@ -342,7 +200,8 @@ def select_model(k: np.ndarray, confidence: np.ndarray, *, force: str | None = N
     confidence = np.asarray(confidence, np.float32)
     est = confidence > 0
     sigma = np.maximum(sigma_from_confidence(confidence), 1e-6).astype(np.float32)
-    fit = _Fits.of(k, sigma, est)
+    # the column models' gate only where k's error is measured (see COLUMN_Z)
+    fit = _Fits.of(k, sigma, est, gate=halves is not None or (calibration is not None and calibration.measured))
     strayed = None if halves is None else departure(k, halves, est)
     if halves is not None and calibration is None:  # measured about the solver's own sigma_k's base
         calibration = calibrate(k, sigma, halves, fit.base, est & (strayed == 0))
@@ -350,7 +209,9 @@ def select_model(k: np.ndarray, confidence: np.ndarray, *, force: str | None = N
         sigma = calibration.sigma(sigma)
         if strayed is not None:
             sigma = np.sqrt(sigma**2 + strayed)
-        fit = _Fits.of(k, sigma, est)
+        fit = _Fits.of(k, sigma, est, gate=calibration.measured)
+    elif halves is not None:  # too few pixels to measure anything: as without halves
+        fit = _Fits.of(k, sigma, est, gate=False)
     deviation = np.where(est, k - fit.base, np.float32(0))
     if calibration is None and sigma_calibrated:
         calibration = Calibration(np.zeros(1), np.ones(1), pixel_prior_variance(deviation[est], sigma[est]),
@@ -364,7 +225,7 @@ def select_model(k: np.ndarray, confidence: np.ndarray, *, force: str | None = N
         # and the effective number of its own (the trace of the shrinkage, sum w: Hastie & Tibshirani 1990)
         misfit = float(np.sum(np.where(est, ((1 - shrink) * deviation / sigma) ** 2, 0), dtype=np.float64))
         scores["pixel"] = misfit + 2.0 * (fit.fits[fit.best][1] + 1.0 + float(np.sum(shrink, dtype=np.float64)))
-    chosen = force or min(MODELS, key=lambda m: scores[m])
+    chosen = force or min(fit.allowed, key=lambda m: scores[m])
     written_sigma = None
     if chosen == "pixel":
         model_k = np.where(est, fit.base + shrink * deviation, np.float32(1))
@@ -384,14 +245,16 @@ def select_model(k: np.ndarray, confidence: np.ndarray, *, force: str | None = N
         "column": 100.0 * robust_spread(1.0 / fit.col[fit.sums.w.sum(axis=0) > 0]) if est.any() else 0.0,
         "row": 100.0 * abs(fit.row[0] - fit.row[1]) / 2.0,
     }
-    return FPNModel(model_k.astype(np.float32), chosen, scores, split, calibration, written_sigma)
+    return FPNModel(model_k.astype(np.float32), chosen, scores, split, calibration, written_sigma, fit.column_z)
 
 
 @dataclass(frozen=True)
 class _Fits:
     """The structured models fitted to k with weights ``1 / sigma^2``: each a gain per (row parity,
     column) with its parameters beyond the overall scale (which the gauge fixes), their AIC, the
-    column and row parts of ``column+row``, and the best one's map (``base``)."""
+    column and row parts of ``column+row``, the best one's map (``base``), the column gains'
+    agreement between the plane's top and bottom (:func:`column_agreement`) and the models it
+    allows (the column ones only at :data:`COLUMN_Z` or more)."""
 
     sums: _Sums
     fits: dict
@@ -400,11 +263,14 @@ class _Fits:
     row: np.ndarray
     best: str
     base: np.ndarray
+    column_z: float
+    allowed: tuple
 
     @classmethod
-    def of(cls, k: np.ndarray, sigma: np.ndarray, est: np.ndarray) -> "_Fits":
+    def of(cls, k: np.ndarray, sigma: np.ndarray, est: np.ndarray, *, gate: bool = True) -> "_Fits":
         weight = np.where(est, np.float32(1) / sigma**2, np.float32(0))
         sums = _Sums.of(k, weight)
+        column_z = column_agreement(k, weight) if gate else float("nan")
         del weight
         col, row = _structured(sums)
         w = k.shape[1]
@@ -418,14 +284,47 @@ class _Fits:
         }
         scores = {name: sums.chi2(fit) + 2.0 * params for name, (fit, params) in fits.items()}
         parity = np.arange(k.shape[0]) % 2
-        best = min(fits, key=lambda m: scores[m])
+        allowed = [m for m in fits if "column" not in m or not column_z < COLUMN_Z]  # NaN: not measurable
+        best = min(allowed, key=lambda m: scores[m])
         base = np.broadcast_to(fits[best][0].astype(np.float32), (2, w))[parity]
-        return cls(sums, fits, scores, col, row, best, base)
+        return cls(sums, fits, scores, col, row, best, base, column_z, tuple(allowed) + ("pixel",))
 
     def full(self, model: str) -> np.ndarray:
         """The structured ``model``'s map, frame-sized."""
         parity = np.arange(self.base.shape[0]) % 2
         return np.broadcast_to(self.fits[model][0].astype(np.float32), (2, self.base.shape[1]))[parity]
+
+
+#: The column gains fitted on the plane's top and bottom halves apart must agree (:func:`column_agreement`)
+#: by at least this many standard errors for a column model to be a candidate, on a plane whose k's
+#: error is measured (two halves of the frames). Measured (240x320 8-bit, 3 % pixel FPN): 1.3 / 0.4 with
+#: no column FPN, 3.4 / 4.3 with 0.2 %, 8.6-12.6 with 0.5-4 %; 38 planes of bursts without column FPN
+#: -2.7 to 3.0 (docs/method.md section 11). Without halves the solver's sigma_k misses what k learned of
+#: an aliased plane and the pixel model takes it for FPN; a column base turned away there let such a map
+#: through the hold-out check (aliased RGGB, 5 fitted frames: 0.935x), so the gate is not applied.
+COLUMN_Z = 4.0
+
+
+def column_agreement(k: np.ndarray, weight: np.ndarray) -> float:
+    """How far column gains fitted apart on the top and bottom halves of the rows agree: their
+    covariance over the columns both halves see, in standard errors (NaN with fewer than 8 such columns).
+
+    A sensor's column FPN is the same down the whole column, so the halves' gains covary; an error
+    that runs along a column (interpolating the scene's vertical edges) does not reach from one half
+    to the other. AIC counts the pixels as independent and cannot tell the two apart."""
+    half = k.shape[0] // 4 * 2  # an even row: both halves hold both row parities alike
+    means = []
+    for rows in (slice(0, half), slice(half, None)):
+        total = weight[rows].sum(axis=0, dtype=np.float64)
+        wk = (weight[rows] * k[rows]).sum(axis=0, dtype=np.float64)  # float32 product: half a plane at a time
+        means.append((np.divide(wk, total, out=np.zeros_like(total), where=total > 0), total > 0))
+    seen = means[0][1] & means[1][1]
+    if seen.sum() < 8:
+        return float("nan")
+    a, b = (m[seen] - m[seen].mean() for m, _ in means)
+    cov = float(np.mean(a * b))
+    se = np.sqrt((float(np.mean(a * a) * np.mean(b * b)) + cov**2) / seen.sum())
+    return cov / se if se > 0 else float("nan")
 
 
 #: :func:`pixel_prior_variance` estimates one number: from this many pixels

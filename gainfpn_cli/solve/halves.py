@@ -1,0 +1,166 @@
+"""k's error measured on two halves of the frames: k fitted again on the even and the odd frames
+(:class:`Halves`), the factor that scales the solver's ``sigma_k`` to k's actual error and the
+pixel FPN's variance (:class:`Calibration`, :func:`calibrate`), and where the full fit strays from
+both halves (:func:`departure`). docs/method.md section 11.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..geometry.resample import masked_window_mean
+
+
+@dataclass(frozen=True)
+class Halves:
+    """k fitted again on two disjoint halves of the frames (before any FPN model), on part of the
+    plane: confidence 0 where a half has no estimate."""
+
+    k_a: np.ndarray
+    confidence_a: np.ndarray
+    k_b: np.ndarray
+    confidence_b: np.ndarray
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """What two halves measured (:func:`calibrate`): the factor that scales ``sigma_k`` to k's
+    actual error, at the RMS ``sigma_k`` of each decile (between them, interpolated in
+    ``log sigma_k``; beyond them, the end ones), and the pixel FPN prior ``s^2`` (None: from the
+    deviations). ``measured`` is False for the solver's ``sigma_k`` taken as it is (factor 1)."""
+
+    log_sigma: np.ndarray
+    factor: np.ndarray
+    prior: float | None
+    measured: bool = True
+
+    def sigma(self, sigma: np.ndarray) -> np.ndarray:
+        """``sigma_k`` (the solver's) scaled to k's actual error; inf stays inf."""
+        sigma = np.asarray(sigma, np.float32)
+        finite = np.isfinite(sigma) & (sigma > 0)
+        scale = np.interp(np.log(np.where(finite, sigma, 1)), self.log_sigma, self.factor).astype(np.float32)
+        return np.where(finite, sigma * scale, sigma)
+
+
+#: Side (px) of the window whose mean sigma_k^2 orders the deciles the pixel FPN is pooled over
+#: (:func:`local_sigma2`, :func:`_prior`).
+LOCAL_WINDOW = 5
+
+
+def local_sigma2(sigma: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """The mean ``sigma_k^2`` over the :data:`LOCAL_WINDOW` window's ``mask`` pixels (0 where there are
+    none). A pixel's own sigma_k falls with its own gain (its readings' information), so its
+    deciles would slice the pixel FPN itself where the scene is flat; the window's mean follows the scene.
+    (k's error does follow a pixel's own sigma_k: the calibration's deciles are by that.)"""
+    return masked_window_mean(np.asarray(sigma, np.float32) ** 2, mask, LOCAL_WINDOW)
+
+
+#: Pixels in each part (a tenth of sigma_k, or fewer parts of a plane with fewer pixels) that
+#: :func:`calibrate` measures a factor on: 1000 give it to about 5 %.
+PART_PIXELS = 1000
+#: Most parts :func:`calibrate` cuts the pixels into: tenths of sigma_k.
+MAX_PARTS = 10
+#: Fewest parts :func:`calibrate` measures: with fewer, one part whose halves' covariance reads low takes
+#: the pooled pixel FPN to 0 and the map to k = 1. Measured (mono 12-bit dark dead leaves, 6 fitted frames,
+#: 16 seeds, MSE ratio on an unseen frame before the check, geometric mean; the solver's sigma_k -> halves):
+#: 64x80 (4 parts) 1.645 -> 1.515, 3 maps lost; 80x96 (6 parts) 1.618 -> 1.581, one lost, one mended. On
+#: 160x192 RGGB bursts (planes of 80x96, 6 parts) k errs 1.00-1.09x the written sigma_k, plane by plane.
+MIN_PARTS = 6
+#: Smallest factor :func:`calibrate` gives ``sigma_k``: a decile whose measured error variance is
+#: 0 or below (a chance of its own noise) must not make k certain.
+MIN_FACTOR = 0.1
+
+
+#: A decile's error beyond the halves' Hausman difference (one they share) is taken in with the weight
+#: ``t^2 / (SHARED_T2 + t^2)``, ``t`` the excess over its standard error: half of it at 2 standard errors.
+#: Measured on synthetic halves (30 seeds, decile factors against the truth): with no shared error, 4 %
+#: RMS (a hard cut at 3 standard errors: 1 %, full weight: 6.5 %); on a 9-frame camera RGGB burst, whose
+#: shared error stands 2-5 standard errors out, the four planes' residual 1.09 % (a hard cut: 1.17 %,
+#: without this term 1.19 %; true FPN 1.0 %; measured with the FPN pooled over deciles of the pixel's own
+#: sigma_k, which gave the chosen weight's 1.09 % as the window's does).
+SHARED_T2 = 4.0
+#: A decile's covariance of the halves' deviations above the pooled pixel FPN variance by more than
+#: this many standard errors holds an error the halves share, and is left out of the FPN (:func:`_prior`).
+PRIOR_Z = 2.0
+
+
+#: Side (px) of the window :func:`departure` compares the full fit with the halves' mean over.
+DEPARTURE_WINDOW = 5
+#: How far (in variance) the full fit must stray from the halves' mean, over the spread the halves
+#: give that mean, before :func:`departure` counts it: under a consistent fit the ratio's expectation
+#: is at most 1, and a 5x5 window of errors correlated over a few pixels has few degrees of freedom.
+DEPARTURE_RATIO = 4.0
+
+
+def departure(k: np.ndarray, halves: Halves, est: np.ndarray) -> np.ndarray:
+    """The variance of an error the full fit ``k`` has and neither half does: the local mean square
+    of ``k - (k_a + k_b) / 2`` beyond the halves' own spread ``((k_a - k_b) / 2)^2`` where it is more
+    than :data:`DEPARTURE_RATIO` times that spread, else 0 (and 0 where a half has no estimate).
+
+    The full fit is the halves' average plus what their cross comparisons add, so it strays from
+    that average by no more than the average's own error; a mode it pins down worse than either
+    half (a frame edge that trajectories leave, comparisons of near frames only) strays further,
+    and the halves' Hausman difference (:func:`calibrate`) reads that as a smaller error, not a
+    larger one."""
+    both = est & (halves.confidence_a > 0) & (halves.confidence_b > 0)
+    k_a, k_b = (np.asarray(m, np.float32) for m in (halves.k_a, halves.k_b))  # plane-sized: float32
+    stray = masked_window_mean((np.asarray(k, np.float32) - (k_a + k_b) / 2) ** 2, both, DEPARTURE_WINDOW)
+    spread = masked_window_mean(((k_a - k_b) / 2) ** 2, both, DEPARTURE_WINDOW)
+    return np.where(both & (stray > DEPARTURE_RATIO * spread), stray - spread, np.float32(0))
+
+
+def calibrate(k: np.ndarray, sigma: np.ndarray, halves: Halves, base: np.ndarray,
+              est: np.ndarray) -> Calibration | None:
+    """The :class:`Calibration` that ``halves`` measure of the full fit ``k`` (``sigma`` its
+    solver's ``sigma_k``), with ``base`` the structured model the pixel FPN deviates from; None
+    where all three fits see too few pixels for :data:`MIN_PARTS` parts of :data:`PART_PIXELS`."""
+    both = est & (halves.confidence_a > 0) & (halves.confidence_b > 0) & np.isfinite(sigma)
+    count = min(int(both.sum()) // PART_PIXELS, MAX_PARTS)
+    if count < MIN_PARTS:
+        return None
+    s = sigma[both].astype(np.float64)
+    k_full, k_a, k_b = (np.asarray(m, np.float64)[both] for m in (k, halves.k_a, halves.k_b))
+    d_full, d_a, d_b = k_full - base[both], k_a - base[both], k_b - base[both]
+    parts = np.array_split(np.argsort(s), count)
+    order = np.argsort(local_sigma2(sigma, both)[both])
+    prior, prior_se = _prior(d_a, d_b, np.array_split(order, count))
+    fine, _ = _prior(d_a, d_b, np.array_split(order, int(both.sum()) // PART_PIXELS))
+    log_sigma, factor = [], []
+    for part in parts:
+        square = float(np.mean(s[part] ** 2))
+        cross = (k_a[part] - k_full[part]) * (k_b[part] - k_full[part])
+        error = -float(np.mean(cross))  # the Hausman difference: what the halves do not share
+        # all of k's error: its deviations' variance less the pixel FPN's (FPN does not know the scene;
+        # about the decile's mean, which a decile of a flat scene's sigma_k shifts with the gains)
+        beyond = (d_full[part] - d_full[part].mean()) ** 2 + cross
+        shared = max(float(np.mean(beyond)) - prior, 0.0)
+        t2 = shared**2 / max(float(np.var(beyond)) / len(part) + prior_se**2, np.finfo(float).tiny)
+        error += shared * t2 / (SHARED_T2 + t2)  # taken in as far as it stands out of its own noise
+        log_sigma.append(0.5 * np.log(square))
+        factor.append(max(np.sqrt(max(error, 0.0) / square), MIN_FACTOR))
+    return Calibration(np.array(log_sigma), np.array(factor), fine)
+
+
+def _prior(d_a: np.ndarray, d_b: np.ndarray, parts) -> tuple[float, float]:
+    """The pixel FPN's variance and its standard error: the covariance of the halves' deviations,
+    pooled over the parts (deciles of sigma_k) that agree with it.
+
+    An error both halves share (interpolating a sharp scene) enters their covariance too, most where
+    sigma_k is large; the pixel FPN does not know the scene and is the same in every part. The parts
+    are taken from the most precise on, each one whose covariance is not above the pooled one by more
+    than :data:`PRIOR_Z` standard errors, and pooled with the inverse of their sampling variances."""
+    covs, variances = [], []
+    for part in parts:
+        a, b = d_a[part] - d_a[part].mean(), d_b[part] - d_b[part].mean()
+        cov = float(np.mean(a * b))
+        covs.append(cov)
+        variances.append(max(float(np.mean(a * a) * np.mean(b * b)) + cov**2, np.finfo(float).tiny) / len(part))
+    pooled, weight = 0.0, 0.0
+    for j in np.argsort(variances):
+        if weight > 0 and covs[j] - pooled > PRIOR_Z * np.sqrt(variances[j] + 1.0 / weight):
+            continue
+        pooled = (pooled * weight + covs[j] / variances[j]) / (weight + 1.0 / variances[j])
+        weight += 1.0 / variances[j]
+    return max(pooled, 0.0), float(1.0 / np.sqrt(weight))
