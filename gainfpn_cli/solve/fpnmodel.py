@@ -69,7 +69,7 @@ import numpy as np
 
 from ..metrics import robust_spread
 from . import FPN_MODELS
-from .halves import Calibration, Halves, calibrate, departure
+from .halves import Calibration, Halves, calibrate, covariance, departure
 from .result import regauge, sigma_from_confidence
 
 MODELS = FPN_MODELS
@@ -313,17 +313,16 @@ def column_agreement(k: np.ndarray, weight: np.ndarray) -> float:
     that runs along a column (interpolating the scene's vertical edges) does not reach from one half
     to the other. AIC counts the pixels as independent and cannot tell the two apart."""
     half = k.shape[0] // 4 * 2  # an even row: both halves hold both row parities alike
-    means = []
+    gains, seen = [], True
     for rows in (slice(0, half), slice(half, None)):
         total = weight[rows].sum(axis=0, dtype=np.float64)
         wk = (weight[rows] * k[rows]).sum(axis=0, dtype=np.float64)  # float32 product: half a plane at a time
-        means.append((np.divide(wk, total, out=np.zeros_like(total), where=total > 0), total > 0))
-    seen = means[0][1] & means[1][1]
+        gains.append(np.divide(wk, total, out=np.zeros_like(total), where=total > 0))
+        seen = seen & (total > 0)
     if seen.sum() < 8:
         return float("nan")
-    a, b = (m[seen] - m[seen].mean() for m, _ in means)
-    cov = float(np.mean(a * b))
-    se = np.sqrt((float(np.mean(a * a) * np.mean(b * b)) + cov**2) / seen.sum())
+    cov, variance = covariance(gains[0][seen], gains[1][seen])
+    se = np.sqrt(variance)
     return cov / se if se > 0 else float("nan")
 
 

@@ -153,10 +153,9 @@ def _prior(d_a: np.ndarray, d_b: np.ndarray, parts) -> tuple[float, float]:
     than :data:`PRIOR_Z` standard errors, and pooled with the inverse of their sampling variances."""
     covs, variances = [], []
     for part in parts:
-        a, b = d_a[part] - d_a[part].mean(), d_b[part] - d_b[part].mean()
-        cov = float(np.mean(a * b))
+        cov, variance = covariance(d_a[part], d_b[part])
         covs.append(cov)
-        variances.append(max(float(np.mean(a * a) * np.mean(b * b)) + cov**2, np.finfo(float).tiny) / len(part))
+        variances.append(max(variance, np.finfo(float).tiny / len(part)))
     pooled, weight = 0.0, 0.0
     for j in np.argsort(variances):
         if weight > 0 and covs[j] - pooled > PRIOR_Z * np.sqrt(variances[j] + 1.0 / weight):
@@ -164,3 +163,11 @@ def _prior(d_a: np.ndarray, d_b: np.ndarray, parts) -> tuple[float, float]:
         pooled = (pooled * weight + covs[j] / variances[j]) / (weight + 1.0 / variances[j])
         weight += 1.0 / variances[j]
     return max(pooled, 0.0), float(1.0 / np.sqrt(weight))
+
+
+def covariance(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
+    """The covariance of ``a`` and ``b`` about their means, and its sampling variance
+    ``(var(a) var(b) + cov^2) / n`` (that of normal data)."""
+    a, b = a - a.mean(), b - b.mean()
+    cov = float(np.mean(a * b))
+    return cov, (float(np.mean(a * a) * np.mean(b * b)) + cov**2) / a.size
