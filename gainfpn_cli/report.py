@@ -208,12 +208,13 @@ class PlaneReport:
     column_agreement: float | None = None
     floor_dn: float | None = None  # photosites whose mean reading is at or below this were not solved
     too_dark_percent: float | None = None  # ... this share of the plane's
+    fpn_base: str | None = None  # the structured model under the chosen one (solve.fpnmodel.FPNModel.base)
 
     def to_json(self) -> dict:
         """Flat, as ``report.json`` holds it: the method, the solver's counts, then the rest."""
         data = {"method": self.method, **vars(self.solver), "solved_on": self.solved_on}
         if self.fpn_model is not None:
-            data.update(fpn_model=self.fpn_model, fpn_model_aic=self.fpn_model_aic,
+            data.update(fpn_model=self.fpn_model, fpn_base=self.fpn_base, fpn_model_aic=self.fpn_model_aic,
                         input_fpn_percent=self.input_fpn_percent, confidence_calibrated=self.confidence_calibrated,
                         column_agreement=self.column_agreement)
         if self.floor_dn is not None:
@@ -225,7 +226,7 @@ class PlaneReport:
         return cls(data["method"], data["solved_on"], stats_from_json(data["method"], data),
                    data.get("fpn_model"), data.get("fpn_model_aic"), data.get("input_fpn_percent"),
                    data.get("confidence_calibrated", False), data.get("column_agreement"), data.get("floor_dn"),
-                   data.get("too_dark_percent"))
+                   data.get("too_dark_percent"), data.get("fpn_base"))
 
 
 @dataclass(frozen=True)

@@ -195,7 +195,8 @@ def solve_planes(burst, frames, excluded, exposures, used: slice, in_frame, solv
                                  halves=plane_halves, calibration=(calibrations or {}).get(name),
                                  sigma_calibrated=True)
             measured = model.sigma is not None and (model.calibration.measured or solver.method == "scene")
-            report = dataclasses.replace(report, fpn_model=model.chosen, fpn_model_aic=model.scores,
+            report = dataclasses.replace(report, fpn_model=model.chosen, fpn_base=model.base,
+                                         fpn_model_aic=model.scores,
                                          input_fpn_percent=model.split, confidence_calibrated=measured,
                                          column_agreement=(round(float(model.column_agreement), 2)
                                                            if np.isfinite(model.column_agreement) else None))
@@ -388,7 +389,8 @@ def check(burst, frames, excluded, exposures, n_fit, in_frame, solver: Solver, r
         return holdout_checks(frames, excluded, exposures, in_frame, k_check,
                               grids=[grid for grid in grids if grid.name in names], saturation=burst.saturation,
                               regions=regions, disagreement=disagreement(k_check, confidence_check, k, confidence,
-                                                                         calibrated=solver.calibrated))
+                                                                         calibrated=solver.calibrated),
+                              columns=[grid.name for grid in grids if column_gains(reports, grid)])
 
     checks = look(CHECK_SIDE, [grid.name for grid in grids])
     sides = dict.fromkeys(checks, CHECK_SIDE)
@@ -402,6 +404,13 @@ def check(burst, frames, excluded, exposures, n_fit, in_frame, solver: Solver, r
     planes = {name: PlaneCheck(c.ratio, c.standard_error, c.passed(CHECK_Z), c.left_out, sides[name])
               for name, c in checks.items()}
     return Holdout(held_out, every.ratio, len(failed) < len(grids), every.standard_error, planes), failed
+
+
+def column_gains(reports, grid) -> bool:
+    """Whether the map of a plane of ``grid`` is built on a gain per column (its FPN model, or the one
+    its pixel model shrinks toward): the hold-out check then leaves out a column of blocks at a time
+    (:func:`solve.holdout.column_strips`). The ``row`` models' gain per row parity is in every block."""
+    return any("column" in (reports[name].fpn_base or "") for name in grid.positions if name in reports)
 
 
 def rejection(holdout: Holdout, failed) -> str:

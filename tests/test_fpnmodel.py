@@ -56,8 +56,12 @@ def test_aic_picks_the_model_that_made_the_data(fpn, expected):
     # P(chi2_1 > 2) = 16 %: column data may come out column+row (the row
     # part then within the noise; counted in the next test)
     k, confidence, _ = _k_map(np.random.default_rng(1), **fpn)
-    chosen = select_model(k, confidence).chosen
-    assert chosen == expected or (expected, chosen) == ("column", "column+row")
+    model = select_model(k, confidence)
+    assert model.chosen == expected or (expected, model.chosen) == ("column", "column+row")
+    # the structured model the map is built on: the chosen one, or the one the pixel model shrinks toward,
+    # which holds the column FPN where there is one (and, by AIC, whatever else fits the pixel FPN best)
+    assert model.base == model.chosen if model.chosen != "pixel" else model.base in set(MODELS) - {"pixel"}
+    assert "column" in model.base or "column" not in fpn
 
 
 def test_aic_chooses_the_truth_as_often_as_it_should():

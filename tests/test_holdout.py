@@ -12,7 +12,7 @@ from gainfpn_cli.geometry.planes import solve_grids
 from gainfpn_cli.geometry.warps import GlobalWarp, LayeredWarp
 from gainfpn_cli.sim.sensor import PRESETS
 from gainfpn_cli.sim.simulate import simulate_burst
-from gainfpn_cli.solve.holdout import Check, _jackknife, holdout_checks
+from gainfpn_cli.solve.holdout import BLOCK, Check, _jackknife, column_strips, holdout_checks
 
 MONO12 = dataclasses.replace(PRESETS["raw12"], cfa=None, fpn_pixel=0.02)
 
@@ -28,6 +28,42 @@ def test_jackknife_standard_error_is_the_spread_of_the_ratio():
     ratios = [_jackknife(*draw()).ratio for _ in range(400)]
     errors = [_jackknife(*draw()).standard_error for _ in range(50)]
     assert np.mean(errors) == pytest.approx(np.std(ratios), rel=0.15)
+
+
+def test_a_map_whose_error_runs_down_columns_is_jackknifed_by_columns():
+    # 16 x 16 blocks whose ratio has a part shared down each column of blocks (a column model's error)
+    # four times the blocks' own: the blocks' jackknife takes them for 256 independent draws and its
+    # standard error is about a quarter of the spread of the ratio; leaving out whole columns is not
+    rng = np.random.default_rng(1)
+    columns = np.tile(np.arange(16), 16)
+
+    def draw():
+        den = rng.gamma(20.0, 1.0, 256)
+        return den * (0.97 + rng.normal(0, 0.02, 16)[columns] + rng.normal(0, 0.005, 256)), den
+
+    ratios = [_jackknife(*draw()).ratio for _ in range(400)]
+    blocks = [_jackknife(*draw()).standard_error for _ in range(100)]
+    by_columns = [_jackknife(*draw(), columns).standard_error for _ in range(100)]
+    assert np.mean(by_columns) == pytest.approx(np.std(ratios), rel=0.15)
+    assert np.mean(blocks) < 0.4 * np.std(ratios)
+    num, den = draw()  # each block its own group: the blocks' jackknife
+    assert _jackknife(num, den, np.arange(256)).standard_error == pytest.approx(_jackknife(num, den).standard_error)
+    assert _jackknife(num, den, np.zeros(256)).standard_error == np.inf  # one column: nothing to leave out
+
+
+def test_column_strips_follow_the_frames_columns_on_every_grid():
+    grids = {g.name: g for g in solve_grids("RGGB", ("Y",), (160, 192), greens_together=True)}
+    red = grids["R@00"]  # 80 x 96: 5 x 6 blocks, a strip each column of them
+    assert np.array_equal(column_strips(red, red.shape), np.tile(np.arange(6), 5))
+    greens = grids["G"]  # the lattice is rotated: a strip holds blocks of several of its rows and columns
+    column = column_strips(greens, greens.shape)
+    h, w = greens.shape
+    y, x = np.meshgrid(np.arange(0, h, BLOCK) + BLOCK / 2, np.arange(0, w, BLOCK) + BLOCK / 2, indexing="ij")
+    frame_x = np.asarray(greens.S)[0] @ np.stack([x.ravel(), y.ravel(), np.ones(x.size)])
+    assert np.all(np.diff(column[np.argsort(frame_x)]) >= 0)  # ordered as the frame's x
+    side = BLOCK * np.sqrt(2)  # a lattice block's side in frame px
+    assert all(np.ptp(frame_x[column == c]) < side for c in np.unique(column))
+    assert len(np.unique(column)) >= np.ptp(frame_x) / side
 
 
 def test_a_correction_is_kept_only_below_one_by_z_standard_errors():

@@ -10,7 +10,8 @@ from gainfpn_cli.report import Exposure, FrameMotion, Holdout, Layer, Motion, Pl
 from gainfpn_cli.solve.result import AccurateStats, PaperStats
 
 ACCURATE = PlaneReport("accurate", "G", AccurateStats(6, (12, 30), 5, 1, 0.81), "column",
-                       {"pixel": 10.0, "column": 2.5}, {"pixel": 1.0, "column": 0.2, "row": 0.0}, True, 7.9)
+                       {"pixel": 10.0, "column": 2.5}, {"pixel": 1.0, "column": 0.2, "row": 0.0}, True, 7.9,
+                       fpn_base="column")
 
 
 @pytest.mark.parametrize("exposure", [Exposure("fixed"), Exposure("per-frame", (1.0, 1.03), (1.0, 1.03), (None, 0.001))])

@@ -100,6 +100,9 @@ class FPNModel:
         How far column gains fitted on the top and bottom halves apart agree, in standard errors
         (:func:`column_agreement`): the column models are candidates at :data:`COLUMN_Z` or more.
         NaN where the gate is not applied (k's error not measured on halves; too few columns).
+    base : str
+        The structured model the map is built on: the chosen one, or the one the pixel model shrinks
+        toward (its column or row gains are in the written k either way).
     """
 
     k: np.ndarray
@@ -109,6 +112,7 @@ class FPNModel:
     calibration: Calibration | None = None
     sigma: np.ndarray | None = None  # with a calibration: the predicted standard error of k
     column_agreement: float = float("nan")
+    base: str = "none"
 
 
 @dataclass(frozen=True)
@@ -245,7 +249,8 @@ def select_model(k: np.ndarray, confidence: np.ndarray, *, force: str | None = N
         "column": 100.0 * robust_spread(1.0 / fit.col[fit.sums.w.sum(axis=0) > 0]) if est.any() else 0.0,
         "row": 100.0 * abs(fit.row[0] - fit.row[1]) / 2.0,
     }
-    return FPNModel(model_k.astype(np.float32), chosen, scores, split, calibration, written_sigma, fit.column_z)
+    return FPNModel(model_k.astype(np.float32), chosen, scores, split, calibration, written_sigma, fit.column_z,
+                    chosen if chosen != "pixel" else fit.best)
 
 
 @dataclass(frozen=True)

@@ -71,12 +71,16 @@ class Check:
 
 
 def holdout_checks(frames, excluded, exposures, motion, k, *, grids, saturation: float | None,
-                   regions: dict | None = None, disagreement: np.ndarray | None = None) -> dict[str, Check]:
+                   regions: dict | None = None, disagreement: np.ndarray | None = None,
+                   columns=()) -> dict[str, Check]:
     """Brightness-constancy residual of the held-out frame against the reference, with k over without
     (the held-out frame brought to the reference's exposure), per grid. ``frames`` hold the reference
     first and the held-out frame last; ``grids`` are :func:`geometry.planes.solve_grids`; ``regions``
     (grid name -> (rows, columns) slices) restricts each grid's check to where its k was fitted;
-    ``disagreement`` (frame-shaped, >= 0) leaves out the blocks where it is an outlier (:data:`OUTLIER`)."""
+    ``disagreement`` (frame-shaped, >= 0) leaves out the blocks where it is an outlier (:data:`OUTLIER`);
+    ``columns`` names the grids whose maps have a gain per column of the frame (their FPN model's): their
+    standard error is the larger of the blocks' jackknife and the one leaving out a column of blocks
+    at a time (:func:`column_strips`)."""
     checks = {}
     sat = np.inf if saturation is None else saturation
     scale = np.float32(power_of_two_scale(frames[0]))  # about 1: k times a frame stays far from float32's limits
@@ -103,7 +107,8 @@ def holdout_checks(frames, excluded, exposures, motion, k, *, grids, saturation:
         if disagreement is not None:
             keep = _agreeing(_block_sums(np.where(valid, grid.gather(disagreement), 0.0))
                              / np.maximum(_block_sums(valid), 1), den > 0)
-        check = _jackknife(num[keep], den[keep])
+        strips = column_strips(grid, shape)[keep] if grid.name in columns else None
+        check = _jackknife(num[keep], den[keep], strips)
         checks[grid.name] = dataclasses.replace(check, left_out=int(np.sum(~keep & (den > 0))))
     return checks
 
@@ -153,18 +158,43 @@ def _block_sums(a: np.ndarray) -> np.ndarray:
     return np.add.reduceat(rows, np.arange(0, w, BLOCK), axis=1).ravel()
 
 
-def _jackknife(num: np.ndarray, den: np.ndarray) -> Check:
+def column_strips(grid, shape: tuple[int, int]) -> np.ndarray:
+    """Per block of :func:`_block_sums` over a ``shape`` grid, the strip of the frame's columns it lies
+    in: strips as wide as a block is in frame pixels, the block's centre deciding (a CFA's green
+    lattice is rotated, so a strip holds blocks of several of its columns). A column FPN model's
+    gains are the same down a column, so their error makes the blocks of a column alike, which
+    the blocks' jackknife takes for independent draws (the guard's aliased RGGB burst of seed 5,
+    docs/limits.md: red's ratio 0.9981 is 2.1 blocks' standard errors below 1, 1.1 of the columns')."""
+    h, w = shape
+    y, x = np.meshgrid(np.arange(0, h, BLOCK) + BLOCK / 2, np.arange(0, w, BLOCK) + BLOCK / 2, indexing="ij")
+    S = np.asarray(grid.S, float)
+    frame_x = S[0] @ np.stack([x.ravel(), y.ravel(), np.ones(x.size)])
+    return np.floor(frame_x / (BLOCK * np.sqrt(abs(np.linalg.det(S[:2, :2]))))).astype(int)
+
+
+def _jackknife(num: np.ndarray, den: np.ndarray, groups: np.ndarray | None = None) -> Check:
     """``sum num / sum den`` and its delete-one-block jackknife standard error, over the blocks
-    that hold any residual; ratio 1 and standard error inf if none does."""
+    that hold any residual; ratio 1 and standard error inf if none does. With ``groups`` (a label
+    per block) the standard error is the larger of that and the delete-one-group jackknife's (inf
+    with one group)."""
     used = den > 0
     num, den = num[used], den[used]
     total_num, total_den = float(num.sum()), float(den.sum())
     if len(den) < 2 or total_den <= 0:
         return Check(1.0, float("inf"), num, den)
+    se = _delete_one(num, den, total_num, total_den)
+    if groups is not None:
+        _, group = np.unique(groups[used], return_inverse=True)
+        se = max(se, _delete_one(np.bincount(group, num), np.bincount(group, den), total_num, total_den)
+                 if group.max() > 0 else float("inf"))
+    return Check(total_num / total_den, se, num, den)
+
+
+def _delete_one(num: np.ndarray, den: np.ndarray, total_num: float, total_den: float) -> float:
+    """The jackknife standard error of ``total_num / total_den`` leaving out one entry at a time."""
     left_out = (total_num - num) / np.maximum(total_den - den, np.finfo(float).tiny)
     n = len(den)
-    se = float(np.sqrt((n - 1) / n * np.sum((left_out - left_out.mean()) ** 2)))
-    return Check(total_num / total_den, se, num, den)
+    return float(np.sqrt((n - 1) / n * np.sum((left_out - left_out.mean()) ** 2)))
 
 
 def disagreement(k_check, confidence_check, k, confidence, *, calibrated: bool) -> np.ndarray:
