@@ -12,7 +12,7 @@ import time
 
 import numpy as np
 
-from . import __version__, darkness, defective, solving
+from . import __version__, checking, darkness, defective, solving
 from .burst import Estimate, LoadedBurst, Progress
 from .config import Config, config_dict
 from .errors import EstimationError, InputError, TrackingError
@@ -180,7 +180,7 @@ def _estimate(burst: LoadedBurst, cfg: Config, solver: solving.Solver, progress:
         if holdout:
             timings["holdout_s"] = sum(t.holdout_s for t in tried or [solved])
             if solved.failed:
-                warnings.append(solving.rejection(holdout_report, solved.failed))
+                warnings.append(checking.rejection(holdout_report, solved.failed))
     if codes is not None:  # no gain is known there; corrected frames repair them (output.repair)
         defective.leave_out(k, confidence, codes, burst.cfa, burst.channels)
     sigma = sigma_from_confidence(confidence)
@@ -274,7 +274,7 @@ def _solve(burst, frames, exposures, n_fit: int, fit: _Fit, solver, cfg: Config,
     solve_s = time.perf_counter() - t0
     holdout_report, failed = None, []
     if held_out is not None:
-        holdout_report, failed = solving.check(burst, frames, excluded, exposures, n_fit, in_frame, solver,
+        holdout_report, failed = checking.check(burst, frames, excluded, exposures, n_fit, in_frame, solver,
                                                plane_reports, calibrations, progress, held_out, k, confidence)
         for grid in failed:
             grid.scatter(k, np.ones(grid.shape, np.float32))

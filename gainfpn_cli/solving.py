@@ -1,5 +1,5 @@
 """Every plane of a burst solved: the solver chosen by the config, the FPN model and its calibration
-on two halves of the frames, and the hold-out check (:mod:`solve.holdout`).
+on two halves of the frames, and the regions the hold-out check (:mod:`checking`) fits again.
 
 :mod:`pipeline` runs motion and hands the frames, the masks and the warps here.
 """
@@ -17,14 +17,13 @@ from .errors import EstimationError
 from .geometry.planes import plane_views, solve_grids
 from .geometry.resample import positions as warp_positions
 from .geometry.resample import window_sum
-from .report import Holdout, PlaneCheck, PlaneReport, SolverChoice
+from .report import PlaneReport, SolverChoice
 from .solve import bootstrap
 from .solve.accurate import AccurateOptions, solve_accurate, solve_accurate_many
 from .solve.aliasing import aliasing
 from .solve.blocks import solve_paper
 from .solve.fpnmodel import select_model
 from .solve.halves import Halves
-from .solve.holdout import disagreement, holdout_checks, pooled
 from .solve.kkt import SolveOptions
 from .solve.result import (
     GainResult,
@@ -357,73 +356,6 @@ def central(burst, frames, solver: Solver, side: int | None = None) -> dict:
 #: enough blocks for a standard error of the ratio near 1 % (256 blocks of 16 px), at a small cost
 #: on large frames (a 12 MP mosaic's planes are 2000 px wide).
 CHECK_SIDE = 256
-#: The hold-out check keeps a plane's estimate only where its residual ratio is below 1 by this many
-#: standard errors (one-sided, 2.3 % of estimates that do not help would pass by chance at one look).
-CHECK_Z = 2.0
-#: A grid whose check is inconclusive (ratio below 1, but not by CHECK_Z standard errors) on a region
-#: smaller than the grid is checked again on one this many times as wide: 4x the pixels, half the
-#: standard error, at 4x the check's cost only where the first look could not decide. Measured on the
-#: bench's 640x480x8 burst, the paper's 3x3 blocks (MSE 2.7x): 0.888 +- 0.058 on 256 px, 0.932 +- 0.032
-#: on 512 px. A map that does nothing then passes by chance 3.9 % of the time, not 2.3 % (simulated:
-#: two normal ratios correlated 0.5, as a region's and its centre quarter's are).
-WIDER = 2
-
-
-def check(burst, frames, excluded, exposures, n_fit, in_frame, solver: Solver, reports, calibrations, progress,
-          held_out: str, k, confidence):
-    """The hold-out check (:mod:`solve.holdout`) of the map ``k`` (``confidence``) of every grid on the
-    frame named ``held_out``, and the grids it rejects.
-
-    k is fitted again on the central :data:`CHECK_SIDE` px of each grid, from the fitted frames
-    without the reference and with each plane's FPN model and calibration as for ``k``, so that
-    neither frame the check compares is in it; grids that region leaves undecided are checked again
-    on one :data:`WIDER` times as wide."""
-    grids = grids_of(burst, frames, solver.method)
-
-    def look(side: int, names) -> dict:
-        """The check of the grids ``names`` on their central ``side`` px."""
-        regions = {name: r for name, r in central(burst, frames, solver, side).items() if name in names}
-        k_check, confidence_check, _, _ = solve_planes(
-            burst, frames, excluded, exposures, slice(1, n_fit), in_frame, solver, progress, regions=regions,
-            models={name: p.fpn_model for name, p in reports.items()}, calibrations=calibrations)
-        return holdout_checks(frames, excluded, exposures, in_frame, k_check,
-                              grids=[grid for grid in grids if grid.name in names], saturation=burst.saturation,
-                              regions=regions, disagreement=disagreement(k_check, confidence_check, k, confidence,
-                                                                         calibrated=solver.calibrated),
-                              columns=[grid.name for grid in grids if column_gains(reports, grid)])
-
-    checks = look(CHECK_SIDE, [grid.name for grid in grids])
-    sides = dict.fromkeys(checks, CHECK_SIDE)
-    undecided = [grid.name for grid in grids if not checks[grid.name].passed(CHECK_Z)
-                 and checks[grid.name].ratio < 1 and max(grid.shape) > CHECK_SIDE]
-    if undecided:
-        checks.update(look(WIDER * CHECK_SIDE, undecided))
-        sides.update(dict.fromkeys(undecided, WIDER * CHECK_SIDE))
-    failed = [grid for grid in grids if not checks[grid.name].passed(CHECK_Z)]
-    every = pooled(checks.values())
-    planes = {name: PlaneCheck(c.ratio, c.standard_error, c.passed(CHECK_Z), c.left_out, sides[name])
-              for name, c in checks.items()}
-    return Holdout(held_out, every.ratio, len(failed) < len(grids), every.standard_error, planes), failed
-
-
-def column_gains(reports, grid) -> bool:
-    """Whether the map of a plane of ``grid`` is built on a gain per column (its FPN model, or the one
-    its pixel model shrinks toward): the hold-out check then leaves out a column of blocks at a time
-    (:func:`solve.holdout.column_strips`). The ``row`` models' gain per row parity is in every block."""
-    return any("column" in (reports[name].fpn_base or "") for name in grid.positions if name in reports)
-
-
-def rejection(holdout: Holdout, failed) -> str:
-    """The warning of planes the hold-out check rejected: what was written, why, and what would help."""
-    which = "the estimate" if len(failed) == len(holdout.planes) else "the " + ", ".join(g.name for g in failed)
-    ratios = ", ".join(f"{g.name} {holdout.planes[g.name].residual_ratio:.3f} +- "
-                       f"{holdout.planes[g.name].standard_error:.3f}" for g in failed)
-    return (f"the hold-out frame does not confirm {which} (residual ratio with k over without: {ratios}; a "
-            f"correction is kept only below 1 by {CHECK_Z:g} standard errors), so k = 1 (no correction) was written "
-            f"there: the burst is too noisy or too aliased for its gain pattern; more frames, more light or more "
-            f"motion would help")
-
-
 def scene_options(options: SceneOptions, grid) -> SceneOptions:
     """The scene solver's options on ``grid``: a photosite is ``1 / scale`` of the grid's pitch wide
     (a CFA plane's photosites are every other one of the mosaic)."""

@@ -106,9 +106,9 @@ def test_with_few_frames_the_scene_solver_is_kept_only_where_the_accurate_map_is
     # sigma_k is not calibrated with few frames: camera at 7.5 %, 5 frames (docs/bench/confidence.py),
     # scene kept by its lower ratio wrote tenths 1.61-2.09x its sigma_k. Here the accurate map's check
     # is made to fail on a burst where the scene solver's ratio is the lower one.
-    from gainfpn_cli import solving
+    from gainfpn_cli import checking, solving
 
-    check = solving.check
+    check = checking.check
 
     def failing(burst, frames, excluded, exposures, n_fit, in_frame, solver, *args):
         report, failed = check(burst, frames, excluded, exposures, n_fit, in_frame, solver, *args)
@@ -116,7 +116,7 @@ def test_with_few_frames_the_scene_solver_is_kept_only_where_the_accurate_map_is
             failed = solving.grids_of(burst, frames, solver.method)
         return report, failed
 
-    monkeypatch.setattr(solving, "check", failing)
+    monkeypatch.setattr(checking, "check", failing)
     sensor = PRESETS["paper"]
     burst = simulate_burst(shape=(96, 128), n_frames=5, sensor=sensor, exposure=0.75, scene="dead-leaves", seed=1)
     result = api.estimate(burst.frames.astype(np.float32) - sensor.black_level,

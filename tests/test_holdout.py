@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from gainfpn_cli import api, solving
+from gainfpn_cli import api, checking, solving
 from gainfpn_cli.geometry.planes import solve_grids
 from gainfpn_cli.geometry.warps import GlobalWarp, LayeredWarp
 from gainfpn_cli.sim.sensor import PRESETS
@@ -204,7 +204,7 @@ def test_a_check_too_small_to_decide_looks_again_on_a_region_twice_as_wide(monke
     monkeypatch.setattr(solving, "CHECK_SIDE", 48)
 
     def plane(wider):
-        monkeypatch.setattr(solving, "WIDER", wider)
+        monkeypatch.setattr(checking, "WIDER", wider)
         result = api.estimate(frames, saturation=MONO12.white_level - MONO12.black_level,
                               **{"solver.workers": 1, "solver.method": "accurate"})
         return result.report.holdout.planes["Y"]

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from helpers import SMALL, one_error, run_cli
 
-from gainfpn_cli import solving
+from gainfpn_cli import checking
 from gainfpn_cli.cli import main
 from gainfpn_cli.errors import EXIT_REJECTED
 from gainfpn_cli.files import read_frame, write_exr
@@ -142,7 +142,7 @@ def test_json_records_say_what_a_pipeline_needs(small_sim, small_estimate, tmp_p
 
 def test_strict_makes_a_rejected_estimate_exit_with_its_own_status(small_sim, tmp_path, monkeypatch):
     says_no = lambda *args, grids, **kwargs: {g.name: Check(1.5, 0.01, np.ones(1), np.ones(1)) for g in grids}  # noqa: E731
-    monkeypatch.setattr(solving, "holdout_checks", says_no)  # the held-out frame says no
+    monkeypatch.setattr(checking, "holdout_checks", says_no)  # the held-out frame says no
     lenient = run_cli("estimate", small_sim, "-o", tmp_path / "a", "--workers", "1", "--json")
     assert json.loads(lenient.stdout)["status"] == "rejected"
     strict = run_cli("estimate", small_sim, "-o", tmp_path / "b", "--workers", "1", "--strict", "-q", ok=False)

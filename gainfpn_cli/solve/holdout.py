@@ -6,7 +6,7 @@ reference was fitted, and a fit learns a little of each fitted frame's noise (ab
 k times the reference is less noisy than the reference, so comparing it flatters k (measured,
 12-bit dark bursts of 8 frames: residual ratio 0.85 against 0.98 from two unfitted frames, while
 the MSE on an unfitted frame was 1.03x). So the check's k comes from a second fit without the
-reference (:func:`solving.check`): neither frame it compares is in it.
+reference (:func:`checking.check`): neither frame it compares is in it.
 
 On a CFA's planes the residuals are low-passed (:data:`BLUR`) before they are summed. A plane
 sampled every other photosite is aliased, predicting one frame from another leaves an
