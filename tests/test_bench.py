@@ -28,6 +28,7 @@ def test_a_small_plan_runs_every_kind_of_point(tmp_path, monkeypatch):
     assert floor["mse_after"] <= fast["mse_after"] < fast["mse_before"]
     assert set(fast["timings"]) >= {"read_s", "motion_s", "solve_s", "write_s", "total_s"}
     assert flow["flow_error_px"] == 0.8 and flow["mse_ratio"] > 0
+    assert fast["frame_mse_ratio"] == pytest.approx(fast["frame_mse_before"] / fast["frame_mse_after"])
     assert len(motion["motion_worst_px"]) == 2 and max(motion["motion_worst_px"]) < 0.5  # sub-pixel on 2 seeds
     assert len(motion["refined_worst_px"]) == 2 and max(motion["refined_worst_px"]) < 0.5
     assert rows["translation"]["refused"].startswith("motion.model translation leaves out how the frames move")
@@ -90,3 +91,17 @@ def test_the_scene_model_group_compares_both_solvers_on_the_same_bursts():
     assert len(keys) == 11  # 8 / 16 / 32 frames, raw12 x 2 scenes x 2 counts, noise-free x blur x 2 counts
     assert sum("-clean" in k for k in keys) == 4 and sum("-b1" in k for k in keys) == 2
     assert sum(k.endswith("-raw12") for k in keys) == 4
+
+
+def test_the_table_gives_the_whole_frame_ratio_where_planes_were_turned_away():
+    from gainfpn_cli.tools.bench.report import markdown
+
+    row = {"group": "scaling_frames", "label": "RGGB", "kind": "pipeline", "burst": {"shape": [64, 80], "n_frames": 6},
+           "residual_fpn_percent": 0.5, "mse_before": 2.0, "mse_after": 1.2, "mse_ratio": 1.66,
+           "frame_mse_ratio": 1.26, "peak_rss_mb": 100.0, "timings": {}}
+    machine = {"cpus": 2, "processor": "x", "platform": "y", "python": "3"}
+    summary = {"machine": machine, "quick": True, "duration_s": 1.0}
+    half = markdown({**summary, "points": [{**row, "estimated_percent": 50.0}]})
+    assert "| 1.7 (frame 1.3) |" in half
+    whole = markdown({**summary, "points": [{**row, "estimated_percent": 99.9}]})
+    assert "| 1.7 |" in whole and "frame" not in whole.split("| RGGB |")[1]

@@ -80,3 +80,34 @@ def test_evaluate_reports_the_bound_and_the_estimate_does_not_pass_it(tmp_path):
     # the confidence's calibration, printed and recorded: 10 tenths of the written sigma_k
     assert len(scores["confidence_deciles"]) == 10 and all(r > 0 for r in scores["confidence_deciles"])
     assert "confidence: k's actual error over the sigma_k it states" in result.output
+    # the whole frame's MSE reduction, printed when the map left pixels unestimated
+    assert scores["estimated_percent"] < 100
+    frame = scores["frame_mse_before"] / scores["frame_mse_after"]
+    assert f"over the whole frame (k = 1 where not estimated): MSE reduction {frame:.1f}x" in result.output
+
+
+def test_scores_over_the_whole_frame_count_what_the_map_did_not_estimate():
+    # a map that estimates the left half only: its own figures are the left half's, the frame's take
+    # the right half as written (k = 1) and leave out the photosites the truth calls defective
+    from gainfpn_cli.sim.evaluate import scores
+    from gainfpn_cli.sim.truth import Truth
+
+    rng = np.random.default_rng(3)
+    gain = 1.0 + 0.02 * rng.standard_normal((40, 60))
+    ideal = rng.uniform(100.0, 200.0, gain.shape)
+    frame0 = gain * ideal
+    defects = np.zeros(gain.shape, np.uint8)
+    defects[5, 50] = 1
+    frame0[5, 50] = 4000.0  # a hot photosite on the right
+    est = np.zeros(gain.shape, bool)
+    est[:, :30] = True
+    k = np.where(est, 1.0 / gain, 1.0)
+    s = scores(k, est, frame0, Truth(gain, ideal, np.eye(3)[None], {}, defects))
+    assert s["estimated_percent"] == 50.0 and s["mse_after"] == pytest.approx(0.0, abs=1e-20)
+    healthy = defects == 0
+    before = np.mean((frame0 - ideal)[healthy] ** 2)
+    right = healthy & ~est
+    assert s["frame_mse_before"] == pytest.approx(before, rel=1e-12)
+    assert s["frame_mse_after"] == pytest.approx(np.sum((frame0 - ideal)[right] ** 2) / healthy.sum(), rel=1e-12)
+    no_defects = scores(k, est, frame0, Truth(gain, ideal, np.eye(3)[None], {}))
+    assert no_defects["frame_mse_before"] > 10 * s["frame_mse_before"]  # the hot photosite counted

@@ -84,7 +84,11 @@ def _dn(value) -> str:
 
 
 def scores(k: np.ndarray, est: np.ndarray, frame0: np.ndarray, truth) -> dict:
-    """Residual gain FPN and the paper's MSE of frame 0 before/after ``k``, over the pixels ``est``."""
+    """Residual gain FPN and the paper's MSE of frame 0 before/after ``k``, over the pixels ``est``,
+    and the MSE over the whole frame (``frame_mse_*``: every photosite the truth calls healthy, with
+    the map as written, k = 1 where it estimated nothing): what a user's frame gets, comparable
+    between maps that estimate different pixels (a plane the hold-out check keeps or turns away)."""
+    healthy = np.ones(k.shape, bool) if truth.defects is None else truth.defects == 0
     return {
         "estimated_percent": 100.0 * float(est.mean()),
         "input_fpn_percent": residual_fpn_percent(np.ones_like(k), truth.gain, est),
@@ -92,4 +96,6 @@ def scores(k: np.ndarray, est: np.ndarray, frame0: np.ndarray, truth) -> dict:
         "mse_before": mse(frame0, truth.ideal, est),
         "mse_after": mse(k * frame0, truth.ideal, est),
         "mse_floor": mse(frame0 / truth.gain, truth.ideal, est),
+        "frame_mse_before": mse(frame0, truth.ideal, healthy),
+        "frame_mse_after": mse(k * frame0, truth.ideal, healthy),
     }

@@ -388,6 +388,8 @@ def _add_derived(results: list[dict]) -> None:
     for row in results:
         if "mse_after" in row:
             row["mse_ratio"] = row["mse_before"] / max(row["mse_after"], 1e-12)
+        if "frame_mse_after" in row:
+            row["frame_mse_ratio"] = row["frame_mse_before"] / max(row["frame_mse_after"], 1e-12)
     scaling = [r for r in results if r["group"] == "scaling_pixels" and r.get("preset") == "balanced"]
     if len(scaling) >= 2:
         x = np.log([r["megapixels"] * r["burst"]["n_frames"] for r in scaling])

@@ -33,8 +33,11 @@ def markdown(summary: dict) -> str:
         fmt = lambda key, spec: format(r[key], spec) if r.get(key) is not None else ""  # noqa: E731
         bound = f" ({fmt('residual_bound_percent', '.2f')})" if r.get("residual_bound_percent") is not None else ""
         residual = "refused" if r.get("refused") else fmt("residual_fpn_percent", ".2f") + bound
+        ratio = fmt("mse_ratio", ".1f")
+        if r.get("frame_mse_ratio") is not None and r.get("estimated_percent", 100) < 99:  # planes turned away
+            ratio += f" (frame {r['frame_mse_ratio']:.1f})"
         lines.append(f"| {r['group']} | {r['label']} | {burst} | {residual} | "
-                     f"{fmt('mse_before', '.2f')} | {fmt('mse_after', '.2f')} | {fmt('mse_ratio', '.1f')} | "
+                     f"{fmt('mse_before', '.2f')} | {fmt('mse_after', '.2f')} | {ratio} | "
                      f"{time_text} | {r['peak_rss_mb']:.0f} |")
     motion = [r for r in summary["points"] if r["kind"] == "motion"]
     if motion:
