@@ -80,10 +80,12 @@ def test_evaluate_reports_the_bound_and_the_estimate_does_not_pass_it(tmp_path):
     # the confidence's calibration, printed and recorded: 10 tenths of the written sigma_k
     assert len(scores["confidence_deciles"]) == 10 and all(r > 0 for r in scores["confidence_deciles"])
     assert "confidence: k's actual error over the sigma_k it states" in result.output
-    # the whole frame's MSE reduction, printed when the map left pixels unestimated
-    assert scores["estimated_percent"] < 100
+    # the whole frame's MSE reduction, printed where it differs from the estimated pixels' (here
+    # measured 1.06x against 1.15x: the check kept planes covering 46 % of the photosites)
     frame = scores["frame_mse_before"] / scores["frame_mse_after"]
-    assert f"over the whole frame (k = 1 where not estimated): MSE reduction {frame:.1f}x" in result.output
+    ratio = scores["mse_before"] / scores["mse_after"]
+    line = f"over the whole frame (k = 1 where not estimated): MSE reduction {frame:.1f}x"
+    assert (line in result.output) == (f"{frame:.1f}" != f"{ratio:.1f}"), (frame, ratio)
 
 
 def test_scores_over_the_whole_frame_count_what_the_map_did_not_estimate():

@@ -130,9 +130,9 @@ def evaluate(est_dir, sim_dir, out_dir, overwrite, as_json, quiet):
     click.echo(f"{'MSE frame 0 (DN^2)':24}{scores['mse_before']:>10.2f}{scores['mse_after']:>10.2f}")
     click.echo(f"MSE reduction {ratio:.1f}x (temporal-noise floor {scores['mse_floor']:.2f} DN^2), "
                f"{scores['estimated_percent']:.0f} % of pixels estimated")
-    if scores["estimated_percent"] < 100:
-        after = scores["frame_mse_after"]
-        frame = scores["frame_mse_before"] / after if after > 0 else float("inf")
+    after = scores["frame_mse_after"]
+    frame = scores["frame_mse_before"] / after if after > 0 else float("inf")
+    if f"{frame:.1f}" != f"{ratio:.1f}":  # the pixels left unestimated change what the frame gets
         click.echo(f"over the whole frame (k = 1 where not estimated): MSE reduction {frame:.1f}x")
     if scores.get("residual_bound_percent") is not None:
         click.echo(f"no estimate from {scores['bound_frames']} frames of this sensor can leave less than "
