@@ -22,7 +22,7 @@ from .solve import bootstrap
 from .solve.accurate import AccurateOptions, solve_accurate, solve_accurate_many
 from .solve.aliasing import aliasing
 from .solve.blocks import solve_paper
-from .solve.fpnmodel import select_model
+from .solve.fpnmodel import measure, pooled_priors, select_model
 from .solve.halves import Halves
 from .solve.kkt import SolveOptions
 from .solve.result import (
@@ -182,6 +182,10 @@ def solve_planes(burst, frames, excluded, exposures, used: slice, in_frame, solv
     elif split and solver.method == "accurate" and calibrations is None:
         calibrations = bootstrapped(burst, frames, excluded, exposures, used, in_frame, solver, progress, k,
                                     confidence)
+    if halves is not None and calibrations is None and solver.calibrated:  # measured first, to pool the priors
+        calibrations = pooled_priors({name: measure(pick(k), pick(confidence),
+                                                    Halves(*(pick(m) for half in halves for m in half)))
+                                      for name, pick, _ in plane_views(burst.cfa, burst.channels) if name in solved})
     reports, calibrated = {}, {}
     for name, pick, _ in plane_views(burst.cfa, burst.channels):  # the gauge and the FPN model, plane by plane
         if name not in solved:  # its grid has no region: k = 1, confidence 0

@@ -314,3 +314,47 @@ def test_the_masked_window_mean_over_the_mask_box_is_the_one_over_the_plane(seed
     total = window_sum(np.where(mask, values, np.float32(0)), side)
     plane = np.divide(total, count, out=np.zeros_like(total), where=count > 0)
     np.testing.assert_array_equal(masked_window_mean(values, mask, side), plane)
+
+
+def test_the_prior_standard_error_counts_errors_correlated_over_neighbours():
+    # k's errors spread over neighbouring pixels (here a 3x3 box of white noise, as an interpolation
+    # kernel spreads a reading's noise): the priors of 24 bursts scatter by what the stated standard
+    # error says (measured 1.08x), where the formula for independent pixels gives half of it (1.97x)
+    import cv2
+
+    shape, priors, stated = (160, 200), [], []
+    for seed in range(24):
+        rng = np.random.default_rng(seed)
+        truth = 1 + 0.01 * rng.standard_normal(shape)
+
+        def error():
+            return 3 * 0.04 * cv2.blur(rng.standard_normal(shape), (3, 3))  # 4 % RMS, noise-dominated
+
+        e_a, e_b = error(), error()
+        sigma = np.full(shape, 0.04 / np.sqrt(2))
+        ones = np.ones(shape)
+        c = calibrate(truth + (e_a + e_b) / 2, sigma, Halves(truth + e_a, ones, truth + e_b, ones), ones, ones > 0)
+        priors.append(c.prior - np.var(truth))
+        stated.append(c.prior_se)
+    assert np.std(priors) / np.sqrt(np.mean(np.square(stated))) == pytest.approx(1.0, abs=0.35)
+
+
+def _measured(prior, se):
+    return Calibration(np.zeros(1), np.ones(1), prior, prior_se=se)
+
+
+def test_planes_priors_are_pooled_where_they_agree_within_chance():
+    planes = {"R@00": _measured(1.4e-4, 0.6e-4), "G@01": _measured(0.5e-4, 0.3e-4), "G@10": _measured(0.4e-4, 0.3e-4),
+              "B@11": _measured(1.5e-4, 0.7e-4), "X": None}
+    pooled = fpnmodel.pooled_priors(planes)
+    assert pooled["X"] is None
+    assert [c.prior for c in pooled.values() if c] == pytest.approx([0.95e-4] * 4)
+    assert pooled["R@00"].prior_se == pytest.approx(np.sqrt(0.36 + 0.09 + 0.09 + 0.49) * 1e-4 / 4)
+    # a plane whose prior is far beyond its standard error keeps its own, and so do the others
+    apart = {**planes, "B@11": _measured(4.0e-4, 0.2e-4)}
+    assert fpnmodel.pooled_priors(apart) is apart
+    # one plane, or priors that were not measured (the solver's own sigma_k): nothing to pool
+    one = {"Y": planes["R@00"]}
+    assert fpnmodel.pooled_priors(one) is one
+    unmeasured = {n: Calibration(np.zeros(1), np.ones(1), 1e-4, measured=False) for n in ("R@00", "B@11")}
+    assert fpnmodel.pooled_priors(unmeasured) is unmeasured
