@@ -182,7 +182,7 @@ def solve_planes(burst, frames, excluded, exposures, used: slice, in_frame, solv
     elif split and solver.method == "accurate" and calibrations is None:
         calibrations = bootstrapped(burst, frames, excluded, exposures, used, in_frame, solver, progress, k,
                                     confidence)
-    if halves is not None and calibrations is None and solver.calibrated:  # measured first, to pool the priors
+    if halves is not None and calibrations is None and solver.calibrated and burst.cfa:  # a mosaic's, to pool
         calibrations = pooled_priors({name: measure(pick(k), pick(confidence),
                                                     Halves(*(pick(m) for half in halves for m in half)))
                                       for name, pick, _ in plane_views(burst.cfa, burst.channels) if name in solved})

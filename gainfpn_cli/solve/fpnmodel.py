@@ -281,15 +281,18 @@ def pooled_priors(calibrations: dict) -> dict:
     burst: 0.61-1.24 % for a true 1.00 % on the four planes), and the written sigma_k of a pixel model
     is about that prior itself. Planes whose priors differ by more than chance keep their own."""
     measured = {name: c for name, c in calibrations.items()
-                if c is not None and c.measured and c.prior is not None and c.prior_se}
+                if c is not None and c.measured and c.prior is not None and c.prior_se is not None
+                and np.isfinite(c.prior_se) and c.prior_se > 0}
     if len(measured) < 2:
         return calibrations
-    from scipy.stats import chi2
+    from scipy.special import gammaincinv
 
     prior = np.array([c.prior for c in measured.values()])
     se = np.array([c.prior_se for c in measured.values()])
     pooled = float(prior.mean())
-    if float(np.sum(((prior - pooled) / se) ** 2)) > chi2.ppf(1 - POOL_P, len(prior) - 1):
+    # chi-square's 1 - POOL_P quantile with n - 1 degrees of freedom (about the plain mean: a little
+    # above chi-square where the errors differ, so the test refuses somewhat more often than POOL_P)
+    if not float(np.sum(((prior - pooled) / se) ** 2)) <= 2 * gammaincinv((len(prior) - 1) / 2, 1 - POOL_P):
         return calibrations
     se = float(np.sqrt(np.sum(se**2))) / len(prior)
     return {name: dataclasses.replace(c, prior=max(pooled, 0.0), prior_se=se) if name in measured else c
