@@ -182,10 +182,12 @@ def solve_planes(burst, frames, excluded, exposures, used: slice, in_frame, solv
     elif split and solver.method == "accurate" and calibrations is None:
         calibrations = bootstrapped(burst, frames, excluded, exposures, used, in_frame, solver, progress, k,
                                     confidence)
+    measures = {}
     if halves is not None and calibrations is None and solver.calibrated and burst.cfa:  # a mosaic's, to pool
-        calibrations = pooled_priors({name: measure(pick(k), pick(confidence),
-                                                    Halves(*(pick(m) for half in halves for m in half)))
-                                      for name, pick, _ in plane_views(burst.cfa, burst.channels) if name in solved})
+        measures = {name: measure(pick(k), pick(confidence), Halves(*(pick(m) for half in halves for m in half)))
+                    for name, pick, _ in plane_views(burst.cfa, burst.channels) if name in solved}
+        pooled = pooled_priors({name: m.calibration for name, m in measures.items()})
+        measures = {name: dataclasses.replace(m, calibration=pooled[name]) for name, m in measures.items()}
     reports, calibrated = {}, {}
     for name, pick, _ in plane_views(burst.cfa, burst.channels):  # the gauge and the FPN model, plane by plane
         if name not in solved:  # its grid has no region: k = 1, confidence 0
@@ -196,7 +198,7 @@ def solve_planes(burst, frames, excluded, exposures, used: slice, in_frame, solv
             plane_halves = None if halves is None else Halves(*(pick(m) for half in halves for m in half))
             model = select_model(kp, pick(confidence), force=(models or {}).get(name) or solver.fpn_model,
                                  halves=plane_halves, calibration=(calibrations or {}).get(name),
-                                 sigma_calibrated=True)
+                                 sigma_calibrated=True, measured=measures.get(name))
             measured = model.sigma is not None and (model.calibration.measured or solver.method == "scene")
             report = dataclasses.replace(report, fpn_model=model.chosen, fpn_base=model.base,
                                          fpn_model_aic=model.scores,

@@ -96,3 +96,14 @@ def test_a_mosaic_of_five_frames_keeps_the_solvers_own():
     result, _ = _estimate(RAW12, 5, shape=(160, 192), seed=5)
     assert not any(p.confidence_calibrated for p in result.report.planes.values())
     assert all(p.column_agreement is None for p in result.report.planes.values())  # nor the column gate applied
+
+
+def test_a_mosaics_planes_share_the_pixel_fpn_prior_they_agree_on():
+    # a dark 9-frame RGGB burst, where k is mostly noise and each plane's halves measure its prior to about
+    # 30 % (0.61-1.24 % for a true 1.00 % on a photograph's planes): pooled, one prior for the four planes
+    result, _ = _estimate(RAW12, 9, shape=(160, 192), exposure=0.075, scene="procedural", seed=5)
+    planes = result.report.planes.values()
+    assert all(p.confidence_calibrated for p in planes)
+    priors = {p.input_fpn_percent["pixel"] for p in planes}
+    assert len(priors) == 1, priors
+    assert priors.pop() == pytest.approx(100 * RAW12.fpn_pixel, rel=0.25)

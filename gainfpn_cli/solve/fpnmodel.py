@@ -177,7 +177,7 @@ def _level(shape: np.ndarray, sums: _Sums) -> np.ndarray:
 
 def select_model(k: np.ndarray, confidence: np.ndarray, *, force: str | None = None,
                  halves: Halves | None = None, calibration: Calibration | None = None,
-                 sigma_calibrated: bool = False) -> FPNModel:
+                 sigma_calibrated: bool = False, measured: "Measured | None" = None) -> FPNModel:
     """Pick the model by AIC (or ``force`` one) and report the FPN split.
 
     Parameters
@@ -197,6 +197,9 @@ def select_model(k: np.ndarray, confidence: np.ndarray, *, force: str | None = N
         accurate solver's residuals with the share the fit took restored): without halves or a
         calibration it is taken as it is (factor 1, ``Calibration.measured`` False), with the prior
         measured from the deviations.
+    measured : Measured, optional
+        What :func:`measure` found of this plane with its halves (its calibration perhaps pooled with
+        other planes'): used instead of ``halves`` and ``calibration``, not measured again.
     """
     if force is not None and force not in MODELS:
         raise ValueError(f"force must be one of {', '.join(MODELS)}, got {force!r}")
@@ -205,17 +208,19 @@ def select_model(k: np.ndarray, confidence: np.ndarray, *, force: str | None = N
     confidence = np.asarray(confidence, np.float32)
     est = confidence > 0
     sigma = np.maximum(sigma_from_confidence(confidence), 1e-6).astype(np.float32)
-    # the column models' gate only where k's error is measured (see COLUMN_Z)
-    fit = _Fits.of(k, sigma, est, gate=halves is not None or (calibration is not None and calibration.measured))
-    strayed = None if halves is None else departure(k, halves, est)
-    if halves is not None and calibration is None:  # measured about the solver's own sigma_k's base
-        calibration = calibrate(k, sigma, halves, fit.base, est & (strayed == 0))
+    if measured is not None:
+        fit, strayed, calibration = measured.fit, measured.strayed, measured.calibration
+    elif halves is not None:
+        fit, strayed, calibration = _measured(k, sigma, est, halves, calibration)
+    else:  # the column models' gate only where k's error is measured (see COLUMN_Z)
+        fit = _Fits.of(k, sigma, est, gate=calibration is not None and calibration.measured)
+        strayed = None
     if calibration is not None:
         sigma = calibration.sigma(sigma)
         if strayed is not None:
             sigma = np.sqrt(sigma**2 + strayed)
         fit = _Fits.of(k, sigma, est, gate=calibration.measured)
-    elif halves is not None:  # too few pixels to measure anything: as without halves
+    elif strayed is not None:  # halves too few pixels to measure anything: as without them
         fit = _Fits.of(k, sigma, est, gate=False)
     deviation = np.where(est, k - fit.base, np.float32(0))
     if calibration is None and sigma_calibrated:
@@ -254,15 +259,34 @@ def select_model(k: np.ndarray, confidence: np.ndarray, *, force: str | None = N
                     chosen if chosen != "pixel" else fit.best)
 
 
-def measure(k: np.ndarray, confidence: np.ndarray, halves: Halves) -> Calibration | None:
-    """The :class:`Calibration` :func:`select_model` measures of a plane with ``halves`` (None where
-    there are too few pixels): to pool with other planes' (:func:`pooled_priors`) before the model
-    is chosen with it."""
+@dataclass(frozen=True)
+class Measured:
+    """What a plane's halves measure of its full fit (:func:`measure`): the structured models fitted
+    with the solver's ``sigma_k``, the variance of the error the full fit has and neither half does
+    (:func:`departure`), and the :class:`Calibration` (None where there are too few pixels)."""
+
+    fit: _Fits
+    strayed: np.ndarray
+    calibration: Calibration | None
+
+
+def measure(k: np.ndarray, confidence: np.ndarray, halves: Halves) -> Measured:
+    """What :func:`select_model` measures of a plane with ``halves``, to pool its calibration with
+    other planes' (:func:`pooled_priors`) before the model is chosen with it (``measured=``)."""
     k = np.asarray(k, np.float32)
-    est = np.asarray(confidence, np.float32) > 0
-    sigma = np.maximum(sigma_from_confidence(np.asarray(confidence, np.float32)), 1e-6).astype(np.float32)
-    fit = _Fits.of(k, sigma, est)
-    return calibrate(k, sigma, halves, fit.base, est & (departure(k, halves, est) == 0))
+    confidence = np.asarray(confidence, np.float32)
+    sigma = np.maximum(sigma_from_confidence(confidence), 1e-6).astype(np.float32)
+    return Measured(*_measured(k, sigma, confidence > 0, halves))
+
+
+def _measured(k: np.ndarray, sigma: np.ndarray, est: np.ndarray, halves: Halves,
+              calibration: Calibration | None = None) -> tuple:
+    """:class:`Measured`'s fields (``calibration`` kept where one is given)."""
+    fit = _Fits.of(k, sigma, est)  # with the column models' gate: k's error is measured (see COLUMN_Z)
+    strayed = departure(k, halves, est)
+    if calibration is None:  # measured about the solver's own sigma_k's base
+        calibration = calibrate(k, sigma, halves, fit.base, est & (strayed == 0))
+    return fit, strayed, calibration
 
 
 #: The planes' measured priors are pooled when their scatter about the pooled one is within chance at
