@@ -85,7 +85,7 @@ MIN_PARTS = 6
 MIN_FACTOR = 0.1
 
 
-#: A decile's error beyond the halves' Hausman difference (one they share) is taken in with the weight
+#: A part's error beyond the halves' Hausman difference (one they share) is taken in with the weight
 #: ``t^2 / (SHARED_T2 + t^2)``, ``t`` the excess over its standard error: half of it at 2 standard errors.
 #: Measured on synthetic halves (30 seeds, decile factors against the truth): with no shared error, 4 %
 #: RMS (a hard cut at 3 standard errors: 1 %, full weight: 6.5 %); on a 9-frame camera RGGB burst, whose
@@ -93,6 +93,9 @@ MIN_FACTOR = 0.1
 #: without this term 1.19 %; true FPN 1.0 %; measured with the FPN pooled over deciles of the pixel's own
 #: sigma_k, which gave the chosen weight's 1.09 % as the window's does).
 SHARED_T2 = 4.0
+#: The error the halves share is counted only where the parts' excesses over the pixel FPN scatter more
+#: than chance at this level (chi-square, :func:`_shared`).
+SHARED_P = 0.01
 #: A decile's covariance of the halves' deviations above the pooled pixel FPN variance by more than
 #: this many standard errors holds an error the halves share, and is left out of the FPN (:func:`_prior`).
 PRIOR_Z = 2.0
@@ -142,20 +145,42 @@ def calibrate(k: np.ndarray, sigma: np.ndarray, halves: Halves, base: np.ndarray
     prior, prior_se = _prior(d_a, d_b, np.array_split(order, count))
     fine, fine_se = _prior(d_a, d_b, np.array_split(order, int(both.sum()) // PART_PIXELS))
     fine_se *= inflation  # the prior's own, for pooling the planes' (fpnmodel.pooled_priors)
+    cross = (k_a - k_full) * (k_b - k_full)
+    shared = _shared(d_full, cross, np.array_split(order, count), prior, prior_se, s.size)
     log_sigma, factor = [], []
     for part in parts:
         square = float(np.mean(s[part] ** 2))
-        cross = (k_a[part] - k_full[part]) * (k_b[part] - k_full[part])
-        error = -float(np.mean(cross))  # the Hausman difference: what the halves do not share
-        # all of k's error: its deviations' variance less the pixel FPN's (FPN does not know the scene;
-        # about the decile's mean, which a decile of a flat scene's sigma_k shifts with the gains)
-        beyond = (d_full[part] - d_full[part].mean()) ** 2 + cross
-        shared = max(float(np.mean(beyond)) - prior, 0.0)
-        t2 = shared**2 / max(float(np.var(beyond)) / len(part) + prior_se**2, np.finfo(float).tiny)
-        error += shared * t2 / (SHARED_T2 + t2)  # taken in as far as it stands out of its own noise
+        error = -float(np.mean(cross[part]))  # the Hausman difference: what the halves do not share
+        error += float(np.mean(shared[part]))
         log_sigma.append(0.5 * np.log(square))
         factor.append(max(np.sqrt(max(error, 0.0) / square), MIN_FACTOR))
     return Calibration(np.array(log_sigma), np.array(factor), fine, prior_se=fine_se)
+
+
+def _shared(d_full: np.ndarray, cross: np.ndarray, parts, prior: float, prior_se: float, size: int) -> np.ndarray:
+    """The variance of the error both halves share, at each pixel: measured over ``parts`` of the
+    neighbours' sigma_k (:func:`local_sigma2`), as all of k's error (its deviations' variance, about the
+    part's mean) less the pixel FPN's ``prior`` and what the halves do not share (``cross``, the
+    Hausman difference's terms). The pixel FPN does not know the scene: it is the same in every part
+    of the neighbours' sigma_k, not of the pixel's own (which falls with its own gain, so its deciles
+    slice the FPN: -9 to +3 %^2 about 25 %^2 on a smooth 8-bit burst, read as shared error). Counted
+    only where the parts scatter about ``prior`` beyond chance (:data:`SHARED_P`): at 5 % pixel FPN a
+    part's FPN variance scatters by 0.4 %^2, several times ``sigma_k^2`` of a bright burst's pixels."""
+    from scipy.special import gammaincinv
+
+    shared = np.zeros(size)
+    excesses, t2s = [], []
+    for part in parts:
+        beyond = (d_full[part] - d_full[part].mean()) ** 2 + cross[part]
+        excess = float(np.mean(beyond)) - prior
+        excesses.append(excess)
+        t2s.append(excess**2 / max(float(np.var(beyond)) / len(part) + prior_se**2, np.finfo(float).tiny))
+    # chi-square's 1 - SHARED_P quantile with one degree of freedom per part
+    if not sum(t2s) > 2 * gammaincinv(len(t2s) / 2, 1 - SHARED_P):
+        return shared
+    for part, excess, t2 in zip(parts, excesses, t2s):
+        shared[part] = max(excess, 0.0) * t2 / (SHARED_T2 + t2)  # taken in as far as it stands out of its noise
+    return shared
 
 
 #: Side (plane px) of the blocks :func:`_correlated` deletes one at a time: k's errors are correlated
