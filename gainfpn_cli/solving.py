@@ -19,8 +19,9 @@ from .geometry.resample import positions as warp_positions
 from .geometry.resample import window_sum
 from .report import PlaneReport, SolverChoice
 from .solve import bootstrap
-from .solve.accurate import AccurateOptions, solve_accurate, solve_accurate_many
+from .solve.accurate import AccurateOptions, partner_frames, solve_accurate, solve_accurate_many
 from .solve.aliasing import aliasing
+from .solve.band import gauge_share, lost_share
 from .solve.blocks import solve_paper
 from .solve.fpnmodel import measure, pooled_priors, select_model
 from .solve.halves import Halves
@@ -155,6 +156,47 @@ def _most_aliased(burst, frames, excluded, exposures, used: slice, in_frame, sol
 def grids_of(burst: LoadedBurst, frames: np.ndarray, method: str) -> list:
     """The grids the solver runs on (the accurate solver takes a CFA's two greens together)."""
     return list(solve_grids(burst.cfa, burst.channels, frames.shape[1:3], greens_together=method == "accurate"))
+
+
+def lost_band_counted(burst: LoadedBurst, frames: np.ndarray, homographies: np.ndarray, used: slice,
+                      confidence: np.ndarray, reports: dict, solver: Solver) -> None:
+    """The written ``sigma_k`` (in ``confidence``, in place) of every plane with a pixel FPN model, with
+    the band of its gains the solver never estimates added: ``s^2`` (the plane's measured pixel FPN
+    prior) times the share a white pattern loses (:mod:`solve.band`; 0.0034 on a 240x320 8-bit burst
+    of 3 px shake, so 0.085 %^2 at 5 % FPN, as large as ``sigma_k^2`` of its most precise pixels).
+    Every fit of the burst loses it alike, so halves of the frames cannot measure it (docs/method.md
+    section 11). ``homographies`` are the frames' ``H_t_ref`` in frame pixels (the reference first),
+    ``used`` the fitted ones."""
+    for grid in grids_of(burst, frames, solver.method):
+        methods = {reports[name].method for name in grid.positions if name in reports}
+        if methods == {"accurate"}:
+            options = solver.accurate
+            fitted = list(range(len(homographies)))[used]
+            anchors = fitted if options.anchors == "all" else fitted[:1]
+            pairs = [(s, fitted[t]) for s in anchors
+                     for t in partner_frames(fitted.index(s), len(fitted), options.partners)]
+            share = lost_share(_grid_shifts(homographies, grid), pairs, options.gauge_sigma, options.mu)
+        elif methods == {"scene"}:
+            share = gauge_share(solver.scene.gauge_sigma)
+        else:
+            continue
+        for name, pick, _ in plane_views(burst.cfa, burst.channels):
+            report = reports.get(name)
+            if name not in grid.positions or report is None or report.fpn_model != "pixel" \
+                    or not report.input_fpn_percent:
+                continue
+            plane = pick(confidence)
+            band = (report.input_fpn_percent["pixel"] / 100.0) ** 2 * share
+            sigma = np.sqrt(sigma_from_confidence(plane).astype(np.float64) ** 2 + band)
+            plane[...] = np.where(plane > 0, confidence_from_sigma(sigma), 0)
+
+
+def _grid_shifts(homographies: np.ndarray, grid) -> np.ndarray:
+    """Each frame's displacement (x, y) at the grid's centre, in the grid's pixels."""
+    centre = np.array([(grid.shape[1] - 1) / 2, (grid.shape[0] - 1) / 2, 1.0])
+    S, S_inv = grid.S, np.linalg.inv(grid.S)
+    moved = np.stack([S_inv @ H @ S @ centre for H in homographies])
+    return moved[:, :2] / moved[:, 2:] - centre[:2]
 
 
 def solve_planes(burst, frames, excluded, exposures, used: slice, in_frame, solver: Solver, progress, *,

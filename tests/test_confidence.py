@@ -107,3 +107,15 @@ def test_a_mosaics_planes_share_the_pixel_fpn_prior_they_agree_on():
     priors = {p.input_fpn_percent["pixel"] for p in planes}
     assert len(priors) == 1, priors
     assert priors.pop() == pytest.approx(100 * RAW12.fpn_pixel, rel=0.25)
+
+
+@pytest.mark.parametrize("seed", [3, pytest.param(2, marks=pytest.mark.slow)])
+def test_a_bright_smooth_burst_counts_the_band_no_fit_estimates(seed):
+    # 8-bit, 5 % pixel FPN, 8 frames of the smooth scene: the most precise pixels' error is mostly the band
+    # of the gains that small motion leaves unestimated (solve.band), the same in both halves of the frames.
+    # Without it the lowest tenth erred 1.54x (seed 3) and 1.53x (seed 2) the written sigma_k; measuring the
+    # halves' shared error by deciles of the pixel's own sigma_k read the FPN it slices as error (0.61x)
+    result, burst = _estimate(PRESETS["paper"], 8, shape=(240, 320), scene="procedural", seed=seed)
+    assert all(p.method == "accurate" and p.confidence_calibrated for p in result.report.planes.values())
+    ratios = _deciles(result, burst)
+    assert all(0.75 <= r <= 1.25 for r in ratios), ratios
