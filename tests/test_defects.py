@@ -17,7 +17,7 @@ from gainfpn_cli.geometry.planes import plane_views
 from gainfpn_cli.geometry.warps import GlobalWarp
 from gainfpn_cli.sim.sensor import PRESETS
 from gainfpn_cli.sim.simulate import simulate_burst
-from gainfpn_cli.sim.truth import hot_offset_z
+from gainfpn_cli.sim.truth import hot_offset_z, response_z
 from gainfpn_cli.solve import defects as D
 from gainfpn_cli.solve import stacks
 
@@ -61,6 +61,22 @@ def test_hot_photosites_the_burst_shows_plainly_are_found(preset, exposure, shar
     plain = hot_offset_z(burst, sensor, hot) > 20
     assert plain.sum() >= 30  # 42 and 210: enough for a share
     assert (_codes(burst, sensor)[hot][plain] > 0).mean() >= share
+    clean = _codes(simulate_burst(**kwargs), sensor)
+    assert np.count_nonzero(clean) <= 1e-4 * clean.size
+
+
+def test_dead_and_stuck_photosites_in_a_black_region_are_found():
+    # a dark 8-bit burst: where the scene is a few counts no ratio is measured, and a stuck photosite
+    # reading 200 there read as healthy; of those whose readings plainly differ from a healthy one's
+    # with the scene known (response_z > 40) 44 of 50 were flagged, now 49 (the one left a dead
+    # photosite reading 0 where the scene gives 3 counts)
+    sensor = PRESETS["paper"]
+    kwargs = dict(shape=(240, 320), n_frames=8, sensor=sensor, scene="dead-leaves", exposure=0.075, seed=3)
+    burst = simulate_burst(defects=0.005, **kwargs)
+    odd = np.isin(burst.defects, [D.DEAD, D.STUCK])
+    plain = response_z(burst, sensor, odd) > 40
+    assert plain.sum() >= 40
+    assert (_codes(burst, sensor)[odd][plain] > 0).mean() >= 0.95
     clean = _codes(simulate_burst(**kwargs), sensor)
     assert np.count_nonzero(clean) <= 1e-4 * clean.size
 

@@ -3,6 +3,7 @@
     python docs/bench/defects.py        # the table of docs/limits.md
     python docs/bench/defects.py hot    # hot photosites found, by offset over (level x pixel FPN)
     python docs/bench/defects.py hotz   # ... by how well the offset could be told from a gain
+    python docs/bench/defects.py deadz  # dead and stuck ones found, by how plainly they differ from a healthy one
 
 Per sensor preset, scene, exposure and frame count: the percentage of each simulated kind
 flagged (in parentheses: flagged as that kind), over two 240x320 bursts with 0.5 % defects; and
@@ -19,7 +20,7 @@ from gainfpn_cli.geometry.planes import plane_views
 from gainfpn_cli.geometry.warps import GlobalWarp
 from gainfpn_cli.sim.sensor import PRESETS
 from gainfpn_cli.sim.simulate import simulate_burst
-from gainfpn_cli.sim.truth import hot_offset_z
+from gainfpn_cli.sim.truth import hot_offset_z, response_z
 from gainfpn_cli.solve import defects as D
 
 
@@ -57,9 +58,9 @@ def offset_over_gain_spread(b, sensor, hot):
     return offset[hot] / (level.mean(axis=0)[hot] * sensor.fpn_pixel)
 
 
-def hot_found(measure, edges):
+def hot_found(measure, edges, kinds=("hot",)):
     """Per sensor, scene and exposure (8 frames, two 240x320 bursts, 0.5 % defects): the share of
-    the hot photosites flagged, binned by ``measure(burst, sensor, hot)``."""
+    the photosites of ``kinds`` flagged, binned by ``measure(burst, sensor, where)``."""
     edges = np.asarray(edges, float)
     for preset in ("raw12", "paper"):
         sensor = PRESETS[preset]
@@ -69,7 +70,7 @@ def hot_found(measure, edges):
                 for seed in (0, 1):
                     b = simulate_burst(shape=(240, 320), n_frames=8, sensor=sensor, scene=scene, exposure=exposure,
                                        defects=0.005, seed=seed)
-                    hot = b.defects == D.KINDS["hot"]
+                    hot = np.isin(b.defects, [D.KINDS[k] for k in kinds])
                     bins = np.clip(np.digitize(measure(b, sensor, hot), edges) - 1, 0, len(edges) - 2)
                     total += np.bincount(bins, minlength=len(edges) - 1)
                     found += np.bincount(bins, weights=(codes_of(b, sensor)[hot] > 0).astype(float),
@@ -83,6 +84,8 @@ if __name__ == "__main__" and sys.argv[1:] == ["hot"]:
     hot_found(offset_over_gain_spread, (0, 2, 4, 6, 8, 10, 15, np.inf))
 elif __name__ == "__main__" and sys.argv[1:] == ["hotz"]:
     hot_found(hot_offset_z, (0, 4, 6, 10, 20, 40, np.inf))
+elif __name__ == "__main__" and sys.argv[1:] == ["deadz"]:
+    hot_found(response_z, (0, 6, 10, 20, 40, np.inf), ("dead", "stuck"))
 elif __name__ == "__main__":
     for preset in ("paper", "raw12"):
         for scene in ("dead-leaves", "procedural"):

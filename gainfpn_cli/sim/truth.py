@@ -142,6 +142,22 @@ def hot_offset_z(burst: Burst, sensor: Sensor, where: np.ndarray) -> np.ndarray:
     return offset / np.sqrt(xx / (xx * bb - xb**2))
 
 
+def response_z(burst: Burst, sensor: Sensor, where: np.ndarray) -> np.ndarray:
+    """How plainly each photosite ``where``'s readings differ from a healthy one's with the scene
+    known: the square root of their chi-square about the best healthy response ``a x_t`` (shot,
+    read and rounding noise; the gain ``a`` with the sensor's pixel FPN as prior, ``N(1, fpn^2)``).
+    A healthy photosite's is about ``sqrt(T)`` for ``T`` frames; a dead or stuck one's is small
+    where the scene along its trajectory is near black or near its stuck reading. At 8 frames a
+    detector that knew the scene and flagged 1e-4 of the healthy photosites would flag those above
+    5.6 (chi-square's 1 - 1e-4 quantile with 8 degrees of freedom, 31.8)."""
+    x = burst.ideal[:, where].astype(np.float64)
+    y = burst.frames[:, where].astype(np.float64) - sensor.black_level
+    w = 1 / ((x / sensor.dn_per_e + sensor.read_noise_e**2) * sensor.dn_per_e**2 + 1 / 12.0)
+    prior = 1 / sensor.fpn_pixel**2
+    a = ((w * x * y).sum(0) + prior) / ((w * x * x).sum(0) + prior)
+    return np.sqrt((w * (y - a * x) ** 2).sum(0) + prior * (a - 1) ** 2)
+
+
 def residual_bound_percent(truth: Truth, mask: np.ndarray, n_frames: int) -> float | None:
     """The residual gain FPN (percent, as :func:`metrics.residual_fpn_percent`) below which no
     estimate from ``n_frames`` frames of this simulation can go on average over ``mask``:

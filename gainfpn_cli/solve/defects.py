@@ -32,7 +32,9 @@ Kinds, in the order they are tested (:data:`KINDS` gives the codes of ``gain_map
   goes unseen; a dark frame finds those, :func:`hot_in_dark`); or an offset far above the
   plane's in a fit of gain and offset to its readings (:func:`_offset_scores`, ``> Z_OFFSET``):
   a trajectory across an edge tells an offset from a gain where the ratio's scatter over the
-  frames hides it from the response.
+  frames hides it from the response; or, where the scene is too dark for a response, readings far
+  above it in every frame (:func:`_dark_scores`, ``> Z_DEFECT``: a stuck or hot photosite in a
+  black region).
 
 Abnormally noisy photosites are not flagged: at scene edges of an aliased plane the prediction's
 error scatters a healthy photosite's readings as much (docs/limits.md).
@@ -164,6 +166,7 @@ def survey(frames: np.ndarray, warp, *, saturation: float | None = None,
                 LEVEL_STEPS * step)
     usable = valid & (x > floor)
     always = valid.all(axis=0)  # every reading usable as far as the frames and the motion go
+    from_frames &= valid  # (in place: no third stack) the valid readings the other frames predict
     del valid  # frame-stack-sized, as usable and from_frames are
     response, scatter, n, lowest, highest = _responses(frames, x, usable)
     tested = n >= MIN_FRAMES
@@ -189,6 +192,8 @@ def survey(frames: np.ndarray, warp, *, saturation: float | None = None,
     if n_frames >= MIN_FIT_FRAMES:
         hot |= _offset_scores(frames, x, usable, typical, plane_spread, scatter, noise) > Z_OFFSET
     hot &= tested & ~dead & ~stuck
+    # where the scene is too dark for a response: readings far above it, in every frame
+    hot |= ~tested & ~stuck & (_dark_scores(frames, x, from_frames, usable, typical, plane_spread, noise) > Z_DEFECT)
     for mask, code in ((dead, DEAD), (stuck, STUCK), (hot, HOT)):
         codes[mask] = code
     return Survey(codes, noise.scaled(unit))
@@ -297,6 +302,34 @@ def _offset_scores(y: np.ndarray, x: np.ndarray, fitted: np.ndarray, typical: fl
     score /= np.maximum(scale, 1e-12, out=scale)
     score[~tested] = 0.0
     return score
+
+
+def _dark_scores(y: np.ndarray, x: np.ndarray, valid: np.ndarray, usable: np.ndarray, typical: float,
+                 spread: float, noise) -> np.ndarray:
+    """Per photosite, its readings' mean excess over the healthy response ``typical x_t`` in the
+    ``valid`` frames not ``usable`` (where the scene is too dark for a ratio), over its standard
+    error: the noise at the brightest of those frames' levels with the gains' ``spread``, over the
+    number of frames, or where larger the robust spread over the 5x5 neighbourhood of every
+    photosite's mean excess in all its ``valid`` frames (beside a sharp edge the interpolated
+    prediction rings, below black in places, and healthy readings there exceed it by hundreds of
+    DN); 0 where fewer than :data:`MIN_FRAMES` frames are dim or a reading is not above its
+    healthy response. A stuck or hot photosite in a black region reads far above what any healthy
+    one there can (a stuck reading of 200 where the scene gives 3 counts)."""
+    count, seen = np.zeros(y.shape[1:], np.int32), valid.sum(axis=0)
+    excess, lowest, brightest, overall = (np.zeros(count.shape, np.float32) for _ in range(4))
+    for rows in strips(y.shape):
+        over = y[:, rows] - typical * x[:, rows]
+        known = valid[:, rows]
+        use = known & ~usable[:, rows]
+        count[rows] = use.sum(axis=0)
+        excess[rows] = np.where(use, over, 0).sum(axis=0) / np.maximum(count[rows], 1)
+        lowest[rows] = np.where(use, over, np.float32(np.inf)).min(axis=0)
+        brightest[rows] = np.where(use, x[:, rows], np.float32(0)).max(axis=0)
+        overall[rows] = np.abs(np.where(known, over, 0).sum(axis=0)) / np.maximum(seen[rows], 1)
+    counted = count >= MIN_FRAMES
+    own = np.sqrt((noise(np.maximum(brightest, 0.0)) + (spread * brightest) ** 2) / np.maximum(count, 1))
+    around = MAD_TO_SIGMA * _local_median(np.where(seen >= MIN_FRAMES, overall, 0))
+    return np.where(counted & (lowest > 0), excess / np.maximum(np.maximum(own, around), 1e-12), 0.0)
 
 
 def _robust_spread(values: np.ndarray, tested: np.ndarray) -> tuple[float, float, np.ndarray]:
