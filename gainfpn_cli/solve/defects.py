@@ -20,7 +20,8 @@ Kinds, in the order they are tested (:data:`KINDS` gives the codes of ``gain_map
 ``defect`` channel):
 
 * ``dead``: no response, below :data:`DEAD_RESPONSE` of the plane's, below :data:`DEAD_CEILING`
-  in every frame, and ``z < -Z_DEFECT``;
+  in every frame, and ``z < -Z_DEFECT``; or, where the scene is too dark for a response, readings
+  below it in every frame (:func:`_dark_scores`, ``< -Z_DEFECT``);
 * ``stuck``: one reading (to a quantisation step) in every frame, where a healthy photosite's
   would vary more than :data:`QUANTISED_STEPS` quantisation steps, by more than 1 /
   :data:`STUCK_SPREAD` times as much (in RMS) (the smaller of its 8 neighbours' and the scene's
@@ -192,8 +193,10 @@ def survey(frames: np.ndarray, warp, *, saturation: float | None = None,
     if n_frames >= MIN_FIT_FRAMES:
         hot |= _offset_scores(frames, x, usable, typical, plane_spread, scatter, noise) > Z_OFFSET
     hot &= tested & ~dead & ~stuck
-    # where the scene is too dark for a response: readings far above it, in every frame
-    hot |= ~tested & ~stuck & (_dark_scores(frames, x, from_frames, usable, typical, plane_spread, noise) > Z_DEFECT)
+    # where the scene is too dark for a response: readings far above it, or below it, in every frame
+    dim = _dark_scores(frames, x, from_frames, usable, typical, plane_spread, noise)
+    hot |= ~tested & ~stuck & (dim > Z_DEFECT)
+    dead |= ~tested & ~stuck & (dim < -Z_DEFECT)
     for mask, code in ((dead, DEAD), (stuck, STUCK), (hot, HOT)):
         codes[mask] = code
     return Survey(codes, noise.scaled(unit))
@@ -308,15 +311,16 @@ def _dark_scores(y: np.ndarray, x: np.ndarray, valid: np.ndarray, usable: np.nda
                  spread: float, noise) -> np.ndarray:
     """Per photosite, its readings' mean excess over the healthy response ``typical x_t`` in the
     ``valid`` frames not ``usable`` (where the scene is too dark for a ratio), over its standard
-    error: the noise at the brightest of those frames' levels with the gains' ``spread``, over the
+    error (negative for a deficit): the noise at the brightest of those frames' levels with the gains' ``spread``, over the
     number of frames, or where larger the robust spread over the 5x5 neighbourhood of every
     photosite's mean excess in all its ``valid`` frames (beside a sharp edge the interpolated
     prediction rings, below black in places, and healthy readings there exceed it by hundreds of
-    DN); 0 where fewer than :data:`MIN_FRAMES` frames are dim or a reading is not above its
-    healthy response. A stuck or hot photosite in a black region reads far above what any healthy
-    one there can (a stuck reading of 200 where the scene gives 3 counts)."""
+    DN); 0 where fewer than :data:`MIN_FRAMES` frames are dim or the readings are not all above
+    (or all below) their healthy response. A stuck or hot photosite in a black region reads far
+    above what any healthy one there can (a stuck reading of 200 where the scene gives 3 counts),
+    a dead one below it in every frame (0 where the scene gives 3-5 counts)."""
     count, seen = np.zeros(y.shape[1:], np.int32), valid.sum(axis=0)
-    excess, lowest, brightest, overall = (np.zeros(count.shape, np.float32) for _ in range(4))
+    excess, lowest, highest, brightest, overall = (np.zeros(count.shape, np.float32) for _ in range(5))
     for rows in strips(y.shape):
         over = y[:, rows] - typical * x[:, rows]
         known = valid[:, rows]
@@ -324,12 +328,13 @@ def _dark_scores(y: np.ndarray, x: np.ndarray, valid: np.ndarray, usable: np.nda
         count[rows] = use.sum(axis=0)
         excess[rows] = np.where(use, over, 0).sum(axis=0) / np.maximum(count[rows], 1)
         lowest[rows] = np.where(use, over, np.float32(np.inf)).min(axis=0)
+        highest[rows] = np.where(use, over, np.float32(-np.inf)).max(axis=0)
         brightest[rows] = np.where(use, x[:, rows], np.float32(0)).max(axis=0)
         overall[rows] = np.abs(np.where(known, over, 0).sum(axis=0)) / np.maximum(seen[rows], 1)
     counted = count >= MIN_FRAMES
     own = np.sqrt((noise(np.maximum(brightest, 0.0)) + (spread * brightest) ** 2) / np.maximum(count, 1))
     around = MAD_TO_SIGMA * _local_median(np.where(seen >= MIN_FRAMES, overall, 0))
-    return np.where(counted & (lowest > 0), excess / np.maximum(np.maximum(own, around), 1e-12), 0.0)
+    return np.where(counted & ((lowest > 0) | (highest < 0)), excess / np.maximum(np.maximum(own, around), 1e-12), 0.0)
 
 
 def _robust_spread(values: np.ndarray, tested: np.ndarray) -> tuple[float, float, np.ndarray]:
