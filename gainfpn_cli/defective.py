@@ -15,6 +15,7 @@ import numpy as np
 from .errors import EstimationError
 from .geometry.planes import plane_views
 from .solve import defects as D
+from .solve.repair import fill
 
 #: Above this fraction of defective photosites in a plane the burst is refused: no sensor is that
 #: broken, so the frames are not of one scene moving (a blank or corrupted frame, a wrong dark frame).
@@ -117,5 +118,5 @@ def repair(frame: np.ndarray, codes: np.ndarray, cfa: str | None, channels: tupl
     out = np.array(frame, np.float32)
     for _, pick, _ in plane_views(cfa, channels):
         view = pick(out[None])[0]
-        view[...] = D.repair(view, pick(codes[None])[0] > 0)
+        view[...] = fill(view, pick(codes[None])[0] > 0)
     return out

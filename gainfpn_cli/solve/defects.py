@@ -48,7 +48,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..geometry.resample import sample, valid_samples, window_sum
+from ..geometry.resample import sample, valid_samples
 from ..metrics import MAD_TO_SIGMA
 from .noise import NoiseModel
 from .noise import fit as fit_noise
@@ -424,32 +424,3 @@ def hot_in_dark(dark: np.ndarray) -> np.ndarray:
     centre = float(np.median(dark))
     spread = MAD_TO_SIGMA * float(np.median(np.abs(dark - centre)))
     return dark > centre + Z_DARK * max(spread, np.finfo(np.float32).tiny)
-
-
-#: Neighbourhoods a defective photosite is filled from, growing until one holds a healthy
-#: photosite: 3x3, 5x5, ... of its plane (a CFA colour's own lattice).
-REPAIR_ROUNDS = 8
-
-
-def repair(plane: np.ndarray, defective: np.ndarray) -> np.ndarray:
-    """``plane`` ``(H, W)`` with every ``defective`` photosite replaced by the mean of its healthy
-    neighbours in the plane (the nearest ring that has any); float32. Photosites with no healthy
-    neighbour within :data:`REPAIR_ROUNDS` rings keep their value."""
-    image = np.array(plane, np.float32)
-    if not defective.any():
-        return image
-    image[defective] = 0  # a stuck or hot reading may be anything, inf included
-    known = (~defective).astype(np.float32)
-    # summed in units of a power of two near the level where the sums could overflow (exact)
-    unit = power_of_two_scale(image) if float(image.max(initial=0.0)) > SAFE_PEAK[1] else 1.0
-    weight = known / np.float32(unit)
-    todo = defective.copy()
-    for radius in range(1, REPAIR_ROUNDS + 1):
-        total = window_sum(image * weight, 2 * radius + 1)
-        count = window_sum(known, 2 * radius + 1)
-        fill = todo & (count > 0.5)
-        image[fill] = total[fill] / count[fill] * np.float32(unit)
-        todo &= ~fill
-        if not todo.any():
-            break
-    return image
