@@ -87,11 +87,10 @@ MIN_FACTOR = 0.1
 
 #: A part's error beyond the halves' Hausman difference (one they share) is taken in with the weight
 #: ``t^2 / (SHARED_T2 + t^2)``, ``t`` the excess over its standard error: half of it at 2 standard errors.
-#: Measured on synthetic halves (30 seeds, decile factors against the truth): with no shared error, 4 %
-#: RMS (a hard cut at 3 standard errors: 1 %, full weight: 6.5 %); on a 9-frame camera RGGB burst, whose
-#: shared error stands 2-5 standard errors out, the four planes' residual 1.09 % (a hard cut: 1.17 %,
-#: without this term 1.19 %; true FPN 1.0 %; measured with the FPN pooled over deciles of the pixel's own
-#: sigma_k, which gave the chosen weight's 1.09 % as the window's does).
+#: Measured on synthetic halves (30 seeds, factors against the truth): with no shared error, 4 % RMS (a
+#: hard cut at 3 standard errors: 1 %, full weight: 6.5 %); on a 9-frame camera RGGB burst, whose shared
+#: error stands 2-5 standard errors out, the four planes' residual 1.09 % (a hard cut: 1.17 %, without
+#: this term 1.19 %; true FPN 1.0 %).
 SHARED_T2 = 4.0
 #: The error the halves share is counted only where the parts' excesses over the pixel FPN scatter more
 #: than chance at this level (chi-square, :func:`_shared`).
