@@ -19,9 +19,9 @@ from .geometry.resample import positions as warp_positions
 from .geometry.resample import window_sum
 from .report import PlaneReport, SolverChoice
 from .solve import bootstrap
-from .solve.accurate import AccurateOptions, partner_frames, solve_accurate, solve_accurate_many
+from .solve.accurate import AccurateOptions, comparison_pairs, solve_accurate, solve_accurate_many
 from .solve.aliasing import aliasing
-from .solve.band import gauge_share, lost_share
+from .solve.band import gauge_share, lost_share, shifts_at_centre
 from .solve.blocks import solve_paper
 from .solve.fpnmodel import measure, pooled_priors, select_model
 from .solve.halves import Halves
@@ -170,12 +170,10 @@ def lost_band_counted(burst: LoadedBurst, frames: np.ndarray, homographies: np.n
     for grid in grids_of(burst, frames, solver.method):
         methods = {reports[name].method for name in grid.positions if name in reports}
         if methods == {"accurate"}:
-            options = solver.accurate
-            fitted = list(range(len(homographies)))[used]
-            anchors = fitted if options.anchors == "all" else fitted[:1]
-            pairs = [(s, fitted[t]) for s in anchors
-                     for t in partner_frames(fitted.index(s), len(fitted), options.partners)]
-            share = lost_share(_grid_shifts(homographies, grid), pairs, options.gauge_sigma, options.mu)
+            fitted = homographies[used]
+            share = lost_share(shifts_at_centre(fitted, grid.S, grid.shape),
+                               comparison_pairs(len(fitted), solver.accurate), solver.accurate.gauge_sigma,
+                               solver.accurate.mu)
         elif methods == {"scene"}:
             share = gauge_share(solver.scene.gauge_sigma)
         else:
@@ -185,18 +183,11 @@ def lost_band_counted(burst: LoadedBurst, frames: np.ndarray, homographies: np.n
             if name not in grid.positions or report is None or report.fpn_model != "pixel" \
                     or not report.input_fpn_percent:
                 continue
-            plane = pick(confidence)
-            band = (report.input_fpn_percent["pixel"] / 100.0) ** 2 * share
-            sigma = np.sqrt(sigma_from_confidence(plane).astype(np.float64) ** 2 + band)
-            plane[...] = np.where(plane > 0, confidence_from_sigma(sigma), 0)
-
-
-def _grid_shifts(homographies: np.ndarray, grid) -> np.ndarray:
-    """Each frame's displacement (x, y) at the grid's centre, in the grid's pixels."""
-    centre = np.array([(grid.shape[1] - 1) / 2, (grid.shape[0] - 1) / 2, 1.0])
-    S, S_inv = grid.S, np.linalg.inv(grid.S)
-    moved = np.stack([S_inv @ H @ S @ centre for H in homographies])
-    return moved[:, :2] / moved[:, 2:] - centre[:2]
+            band = np.float32((report.input_fpn_percent["pixel"] / 100.0) ** 2 * share)
+            if band > 0:
+                plane = pick(confidence)  # float32: sigma_k^2 of 1e-8 and more, the band's ~1e-5
+                sigma = np.sqrt(sigma_from_confidence(plane) ** 2 + band)
+                plane[...] = np.where(plane > 0, confidence_from_sigma(sigma), 0)
 
 
 def solve_planes(burst, frames, excluded, exposures, used: slice, in_frame, solver: Solver, progress, *,

@@ -66,11 +66,10 @@ def test_hot_photosites_the_burst_shows_plainly_are_found(preset, exposure, shar
 
 
 def test_dead_and_stuck_photosites_in_a_black_region_are_found():
-    # a dark 8-bit burst: where the scene is a few counts no ratio is measured, and a stuck photosite
-    # reading 200 there, or a dead one reading 0 where the scene gives 3, read as healthy. Of those whose
-    # readings differ from a healthy one's with the scene known (response_z) by more than 10 / 40,
-    # 104 of 114 / 44 of 50 were flagged, with the test for readings above the scene 109 / 49, and
-    # with the one for readings below it too 111 / 49
+    # a dark 8-bit burst: where the scene is a few counts no ratio is measured; a stuck photosite reading
+    # 200 there, or a dead one reading 0 where the scene gives 3, is found by the dim frames' tests. Of those
+    # whose readings differ from a healthy one's with the scene known (response_z) by more than 10 / 40:
+    # 111 of 114 / 49 of 50 flagged (104 / 44 without those tests)
     sensor = PRESETS["paper"]
     kwargs = dict(shape=(240, 320), n_frames=8, sensor=sensor, scene="dead-leaves", exposure=0.075, seed=3)
     burst = simulate_burst(defects=0.005, **kwargs)

@@ -171,8 +171,7 @@ def _prepare(frames, motion, options: AccurateOptions, saturation, excluded, exp
             f"frames of {w}x{h} px are too small for the {options.kernel} kernel, which needs more than "
             f"{2 * radius} px on each side (use solver.interpolation: bilinear, or solver.method: paper)"
         )
-    anchors = range(frames.shape[0]) if options.anchors == "all" else [0]
-    pairs = tuple((s, t) for s in anchors for t in partner_frames(s, frames.shape[0], options.partners))
+    pairs = comparison_pairs(frames.shape[0], options)
     return tiles_of(frames, excluded, motion, saturation, options, exposures, pairs)
 
 
@@ -182,6 +181,13 @@ def _assemble(tiles, results, shape, options: AccurateOptions) -> GainResult:
     stats = AccurateStats(tiles=len(tiles), gmres_iterations=b.iterations, unestimated_pixels=b.unestimated_pixels,
                           out_of_range_pixels=b.out_of_range_pixels, median_confidence=b.median_confidence)
     return GainResult(b.k, b.confidence, stats)
+
+
+def comparison_pairs(n: int, options: AccurateOptions) -> tuple:
+    """The (anchor, partner) frames the solver compares among ``n`` frames (``options.anchors``,
+    ``options.partners``)."""
+    anchors = range(n) if options.anchors == "all" else [0]
+    return tuple((s, t) for s in anchors for t in partner_frames(s, n, options.partners))
 
 
 def partner_frames(s: int, n: int, count: int) -> list[int]:

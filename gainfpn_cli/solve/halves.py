@@ -90,7 +90,8 @@ MIN_FACTOR = 0.1
 #: Measured on synthetic halves (30 seeds, factors against the truth): with no shared error, 4 % RMS (a
 #: hard cut at 3 standard errors: 1 %, full weight: 6.5 %); on a 9-frame camera RGGB burst, whose shared
 #: error stands 2-5 standard errors out, the four planes' residual 1.09 % (a hard cut: 1.17 %, without
-#: this term 1.19 %; true FPN 1.0 %).
+#: this term 1.19 %; true FPN 1.0 %); both measured with the shared error read per decile of the pixel's
+#: own sigma_k and without the chi-square gate (SHARED_P), which now keeps chance out.
 SHARED_T2 = 4.0
 #: The error the halves share is counted only where the parts' excesses over the pixel FPN scatter more
 #: than chance at this level (chi-square, :func:`_shared`).

@@ -31,9 +31,9 @@ def fill(plane: np.ndarray, defective: np.ndarray) -> np.ndarray:
     for radius in range(1, REPAIR_ROUNDS + 1):
         total = window_sum(image * weight, 2 * radius + 1)
         count = window_sum(known, 2 * radius + 1)
-        fill = todo & (count > 0.5)
-        image[fill] = total[fill] / count[fill] * np.float32(unit)
-        todo &= ~fill
+        filled = todo & (count > 0.5)
+        image[filled] = total[filled] / count[filled] * np.float32(unit)
+        todo &= ~filled
         if not todo.any():
             break
     return image
