@@ -320,22 +320,28 @@ def _dark_scores(y: np.ndarray, x: np.ndarray, valid: np.ndarray, usable: np.nda
     (or all below) their healthy response. A stuck or hot photosite in a black region reads far
     above what any healthy one there can (a stuck reading of 200 where the scene gives 3 counts),
     a dead one below it in every frame (0 where the scene gives 3-5 counts)."""
-    count, seen = np.zeros(y.shape[1:], np.int32), valid.sum(axis=0)
-    excess, lowest, highest, brightest, overall = (np.zeros(count.shape, np.float32) for _ in range(5))
+    # two passes a strip at a time: a plane's temporaries, not a stack's (12 MP x 16 frames)
+    overall = np.zeros(y.shape[1:], np.float32)
     for rows in strips(y.shape):
-        over = y[:, rows] - typical * x[:, rows]
         known = valid[:, rows]
-        use = known & ~usable[:, rows]
-        count[rows] = use.sum(axis=0)
-        excess[rows] = np.where(use, over, 0).sum(axis=0) / np.maximum(count[rows], 1)
-        lowest[rows] = np.where(use, over, np.float32(np.inf)).min(axis=0)
-        highest[rows] = np.where(use, over, np.float32(-np.inf)).max(axis=0)
-        brightest[rows] = np.where(use, x[:, rows], np.float32(0)).max(axis=0)
-        overall[rows] = np.abs(np.where(known, over, 0).sum(axis=0)) / np.maximum(seen[rows], 1)
-    counted = count >= MIN_FRAMES
-    own = np.sqrt(noise(np.maximum(brightest, 0.0)) / np.maximum(count, 1) + (spread * brightest) ** 2)
-    around = MAD_TO_SIGMA * _local_median(np.where(seen >= MIN_FRAMES, overall, 0))
-    return np.where(counted & ((lowest > 0) | (highest < 0)), excess / np.maximum(np.maximum(own, around), 1e-12), 0.0)
+        seen = known.sum(axis=0)
+        total = np.where(known, y[:, rows] - typical * x[:, rows], np.float32(0)).sum(axis=0)
+        overall[rows] = np.where(seen >= MIN_FRAMES, np.abs(total) / np.maximum(seen, 1), 0)
+    around = (MAD_TO_SIGMA * _local_median(overall)).astype(np.float32)
+    del overall
+    score = np.zeros(y.shape[1:], np.float32)
+    for rows in strips(y.shape):
+        use = valid[:, rows] & ~usable[:, rows]
+        count = use.sum(axis=0)
+        over = y[:, rows] - typical * x[:, rows]
+        excess = np.where(use, over, 0).sum(axis=0) / np.maximum(count, 1)
+        lowest = np.where(use, over, np.float32(np.inf)).min(axis=0)
+        highest = np.where(use, over, np.float32(-np.inf)).max(axis=0)
+        brightest = np.where(use, x[:, rows], np.float32(0)).max(axis=0)
+        own = np.sqrt(noise(np.maximum(brightest, 0.0)) / np.maximum(count, 1) + (spread * brightest) ** 2)
+        sure = (count >= MIN_FRAMES) & ((lowest > 0) | (highest < 0))
+        score[rows] = np.where(sure, excess / np.maximum(np.maximum(own, around[rows]), 1e-12), 0.0)
+    return score
 
 
 def _robust_spread(values: np.ndarray, tested: np.ndarray) -> tuple[float, float, np.ndarray]:
