@@ -37,10 +37,10 @@ def lost_share(shifts: np.ndarray, pairs, gauge_sigma: float, mu: float) -> floa
     axis = np.arange(-reach, reach + STEP / 2, STEP)
     fx, fy = np.meshgrid(axis, axis)
     g = np.exp(-2.0 * np.pi**2 * gauge_sigma**2 * (fx**2 + fy**2))
+    phase = {t: np.exp(2j * np.pi * (fx * dx + fy * dy)) for t, (dx, dy) in enumerate(shifts)}  # a frame's, once
     m = np.zeros(g.shape, complex)
     for s, t in pairs:
-        dx, dy = shifts[t] - shifts[s]
-        m += 1.0 if np.hypot(dx, dy) > RESOLVED else 1.0 - np.exp(2j * np.pi * (fx * dx + fy * dy))
+        m += 1.0 if np.hypot(*(shifts[t] - shifts[s])) > RESOLVED else 1.0 - phase[t] * np.conj(phase[s])
     m /= max(len(pairs), 1)
     denominator = m + mu * g
     kept = (1.0 - g) * np.divide(m, denominator, out=np.zeros_like(m), where=np.abs(denominator) > 0)
