@@ -26,6 +26,14 @@ def robust_spread(values: np.ndarray) -> float:
     return float(MAD_TO_SIGMA * np.median(np.abs(rel - np.median(rel))))
 
 
+def chi2_quantile(q: float, dof: float) -> float:
+    """Chi-square's ``q`` quantile with ``dof`` degrees of freedom, ``2 gammaincinv(dof / 2, q)``
+    (scipy.stats' ``chi2.ppf`` without its import)."""
+    from scipy.special import gammaincinv
+
+    return float(2.0 * gammaincinv(dof / 2.0, q))
+
+
 def residual_fpn_percent(k: np.ndarray, gain: np.ndarray, mask: np.ndarray | None = None) -> float:
     """Robust spread of ``k * a`` (what is left of the gain FPN), percent."""
     product = np.asarray(k, np.float64) * np.asarray(gain, np.float64)

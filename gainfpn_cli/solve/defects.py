@@ -314,9 +314,9 @@ def _dark_scores(y: np.ndarray, x: np.ndarray, valid: np.ndarray, usable: np.nda
     ``valid`` frames not ``usable`` (where the scene is too dark for a ratio), over its standard
     error (negative for a deficit): the noise at the brightest of those frames' levels over the
     number of frames with the gains' ``spread`` at that level, or where larger the robust spread
-    over the 5x5 neighbourhood of every photosite's mean excess in all its ``valid`` frames (beside a sharp edge the interpolated
-    prediction rings, below black in places, and healthy readings there exceed it by hundreds of
-    DN); 0 where fewer than :data:`MIN_FRAMES` frames are dim or the readings are not all above
+    over the 5x5 neighbourhood of every photosite's mean excess in all its ``valid`` frames (beside
+    a sharp edge the interpolated prediction rings, below black in places, and healthy readings
+    there exceed it by hundreds of DN); 0 where fewer than :data:`MIN_FRAMES` frames are dim or the readings are not all above
     (or all below) their healthy response. A stuck or hot photosite in a black region reads far
     above what any healthy one there can (a stuck reading of 200 where the scene gives 3 counts),
     a dead one below it in every frame (0 where the scene gives 3-5 counts)."""

@@ -68,7 +68,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..metrics import robust_spread
+from ..metrics import chi2_quantile, robust_spread
 from . import FPN_MODELS
 from .halves import Calibration, Halves, calibrate, covariance, departure
 from .result import regauge, sigma_from_confidence
@@ -309,14 +309,12 @@ def pooled_priors(calibrations: dict) -> dict:
                 and np.isfinite(c.prior_se) and c.prior_se > 0}
     if len(measured) < 2:
         return calibrations
-    from scipy.special import gammaincinv
-
     prior = np.array([c.prior for c in measured.values()])
     se = np.array([c.prior_se for c in measured.values()])
     pooled = float(prior.mean())
     # chi-square's 1 - POOL_P quantile with n - 1 degrees of freedom (about the plain mean: a little
     # above chi-square where the errors differ, so the test refuses somewhat more often than POOL_P)
-    if not float(np.sum(((prior - pooled) / se) ** 2)) <= 2 * gammaincinv((len(prior) - 1) / 2, 1 - POOL_P):
+    if not float(np.sum(((prior - pooled) / se) ** 2)) <= chi2_quantile(1 - POOL_P, len(prior) - 1):
         return calibrations
     se = float(np.sqrt(np.sum(se**2))) / len(prior)
     return {name: dataclasses.replace(c, prior=max(pooled, 0.0), prior_se=se) if name in measured else c

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..geometry.resample import masked_window_mean
+from ..metrics import chi2_quantile
 
 
 @dataclass(frozen=True)
@@ -166,8 +167,6 @@ def _shared(d_full: np.ndarray, cross: np.ndarray, parts, prior: float, prior_se
     slice the FPN: -9 to +3 %^2 about 25 %^2 on a smooth 8-bit burst, read as shared error). Counted
     only where the parts scatter about ``prior`` beyond chance (:data:`SHARED_P`): at 5 % pixel FPN a
     part's FPN variance scatters by 0.4 %^2, several times ``sigma_k^2`` of a bright burst's pixels."""
-    from scipy.special import gammaincinv
-
     shared = np.zeros(size)
     excesses, t2s = [], []
     for part in parts:
@@ -176,7 +175,7 @@ def _shared(d_full: np.ndarray, cross: np.ndarray, parts, prior: float, prior_se
         excesses.append(excess)
         t2s.append(excess**2 / max(float(np.var(beyond)) / len(part) + prior_se**2, np.finfo(float).tiny))
     # chi-square's 1 - SHARED_P quantile with one degree of freedom per part
-    if not sum(t2s) > 2 * gammaincinv(len(t2s) / 2, 1 - SHARED_P):
+    if not sum(t2s) > chi2_quantile(1 - SHARED_P, len(t2s)):
         return shared
     for part, excess, t2 in zip(parts, excesses, t2s):
         shared[part] = max(excess, 0.0) * t2 / (SHARED_T2 + t2)  # taken in as far as it stands out of its noise

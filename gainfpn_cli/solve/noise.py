@@ -8,6 +8,8 @@ from itertools import pairwise
 
 import numpy as np
 
+from ..metrics import chi2_quantile
+
 
 @dataclass(frozen=True)
 class NoiseModel:
@@ -38,10 +40,7 @@ def fit(level: np.ndarray, scatter: np.ndarray, n: int) -> NoiseModel:
     their scatter about the predicted scene is the noise with the least prediction error on top.
     ``scatter`` is each photosite's variance about the scene, from ``n - 1`` degrees of freedom,
     ``level`` its mean scene level."""
-    # chi2.ppf(q, k) = 2 gammaincinv(k / 2, q), without scipy.stats' import
-    from scipy.special import gammaincinv
-
-    quarter = 2.0 * gammaincinv((n - 1) / 2.0, 0.25) / (n - 1)  # lower quartile of a variance estimate, in variances
+    quarter = chi2_quantile(0.25, n - 1) / (n - 1)  # lower quartile of a variance estimate, in variances
     edges = np.quantile(level, np.linspace(0, 1, 9))
     centres, values = [], []
     for lo, hi in pairwise(edges):
