@@ -13,8 +13,9 @@ the widest the CPU has, which rounds differently enough to move the estimate (me
 stored frames, an AVX2-only AMD EPYC against arrays written on a CPU that was not recorded: k
 2.6e-4 RMS, 7.5e-3 at most on the mono burst; with OpenCV's optimisations off 1.9e-5 RMS). So
 arrays are stored for each kind of CPU met (a folder per :func:`cpu_kind`; ``unrecorded-cpu``: the
-first), all from the same frames, and the estimate must match one set. When a result is meant to
-change, the sets of other CPUs are stale: remove them and write each kind's on its own machine.
+first), all from the same frames, and the estimate must match one set; where none matches and none
+was written on this kind of CPU, the test is skipped, saying so. When a result is meant to change,
+the sets of other CPUs are stale: remove them and write each kind's on its own machine.
 """
 
 from __future__ import annotations
@@ -87,8 +88,11 @@ def test_k_and_confidence_are_those_stored(name, tmp_path):
         assert all(now[key].shape == stored[key].shape for key in ("k", "confidence")), path
         off[path.parent.name] = {key: float(np.abs(now[key].astype(np.float64) - stored[key]).max())
                                  for key in ("k", "confidence")}
-    assert any(all(o[key] <= ATOL[key] for key in ATOL) for o in off.values()), \
-        f"{name}: k or confidence off every stored set by (at most) {off}"
+    matched = any(all(o[key] <= ATOL[key] for key in ATOL) for o in off.values())
+    if not matched and cpu_kind() not in off:  # another kind of CPU rounds the flow and the remaps differently
+        pytest.skip(f"{name}: no arrays stored for this kind of CPU ({cpu_kind()}; stored: {', '.join(off)}): "
+                    "write them here with python tests/test_golden.py")
+    assert matched, f"{name}: k or confidence off every stored set by (at most) {off}"
 
 
 if __name__ == "__main__":  # write this CPU's arrays again, from the frames stored for any CPU

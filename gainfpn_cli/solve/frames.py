@@ -26,7 +26,8 @@ def refine_frames(forward, s, predicted, a, y, valid, noise, shape, *, scale: in
     :data:`REFINE_CHI2`) and material (RMS move above ``refine_px`` or exposure change above
     ``refine_exposure``): warps the burst follows are left as they are. The steps are taken about
     their mean over the frames. Returns ``(moves (frames, pixels, 2) grid px, exposure factors
-    (frames,))``."""
+    (frames,), material (frames,))``: the moves and factors of every frame whose step is
+    significant, and which of them are material."""
     n = a.size
     n_frames = y.size // n
     grid = s.reshape(scale * shape[0], scale * shape[1])
@@ -57,14 +58,15 @@ def refine_frames(forward, s, predicted, a, y, valid, noise, shape, *, scale: in
     steps -= steps.mean(axis=0)
     moves = np.zeros((n_frames, n, 2))
     gains = np.ones(n_frames)
+    material = np.zeros(n_frames, bool)
     gram = basis.T @ basis / n  # a field's mean square from its coefficients
     for t in range(n_frames):
-        rms = np.sqrt(max(steps[t, :m] @ gram @ steps[t, :m] + steps[t, m:2 * m] @ gram @ steps[t, m:2 * m], 0.0))
-        material = rms > refine_px or abs(steps[t, 2 * m]) > refine_exposure
-        if material and chi2[t] > REFINE_CHI2 and np.all(np.isfinite(steps[t])):
+        if chi2[t] > REFINE_CHI2 and np.all(np.isfinite(steps[t])):
             moves[t] = np.stack([basis @ steps[t, :m], basis @ steps[t, m:2 * m]], axis=1)
             gains[t] = 1.0 + steps[t, 2 * m]
-    return moves, gains
+            rms = np.sqrt(max(steps[t, :m] @ gram @ steps[t, :m] + steps[t, m:2 * m] @ gram @ steps[t, m:2 * m], 0.0))
+            material[t] = rms > refine_px or abs(steps[t, 2 * m]) > refine_exposure
+    return moves, gains, material
 
 
 @compiled
