@@ -11,11 +11,13 @@ another CPU may round the last bit of a float32 sum differently, hence the toler
 OpenCV's kernels (the flow and the remaps) are compiled for several vector extensions and pick
 the widest the CPU has, which rounds differently enough to move the estimate (measured on the same
 stored frames, an AVX2-only AMD EPYC against arrays written on a CPU that was not recorded: k
-2.6e-4 RMS, 7.5e-3 at most on the mono burst; with OpenCV's optimisations off 1.9e-5 RMS). So
-arrays are stored for each kind of CPU met (a folder per :func:`cpu_kind`; ``unrecorded-cpu``: the
-first), all from the same frames, and the estimate must match one set; where none matches and none
-was written on this kind of CPU, the test is skipped, saying so. When a result is meant to change,
-the sets of other CPUs are stale: remove them and write each kind's on its own machine.
+2.6e-4 RMS, 7.5e-3 at most on the mono burst; with OpenCV's optimisations off 1.9e-5 RMS; an
+AVX-512 AMD EPYC against the AVX2 arrays: 7.3e-3 at most, which OPENCV_CPU_DISABLE,
+NPY_DISABLE_CPU_FEATURES, NUMBA_CPU_NAME and OPENCV_IPP did not take away). So arrays are stored
+for each kind of CPU met (a folder per :func:`cpu_kind`), all from the same frames, and the
+estimate must match one set; where none matches and none was written on this kind of CPU, the test
+is skipped, saying so. When a result is meant to change, the sets of other CPUs are stale: remove
+them and write each kind's on its own machine.
 """
 
 from __future__ import annotations

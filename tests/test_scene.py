@@ -26,7 +26,9 @@ from gainfpn_cli.solve.scene import (
     prepare,
     solve_scene,
 )
+from gainfpn_cli.solve import scenemodel
 from gainfpn_cli.solve.scenemodel import (
+    _moved,
     add_smoothness,
     fit_tile,
     noise_variance,
@@ -148,6 +150,19 @@ def test_misregistrations_below_refine_px_are_refined(shift, share):
     tile = prepare({"frames": frames, "motion": told}, SceneOptions())[0]
     truth = _points(motion, frames.shape[1:])
     assert _worst_error(fit_tile(tile).points, truth) <= share * _worst_error(_points(told, frames.shape[1:]), truth)
+
+
+def test_a_frame_moved_by_the_last_extra_step_is_not_moved_again(monkeypatch):
+    # with the extra steps used up no refinement follows the last one, so the warps reported are
+    # those the last move left (a move kept from the round before would be added a second time)
+    frames, motion, _ = _model_burst()
+    told, _ = _off_model(motion, (0.04, -0.02), 0.0, 1.0)
+    options = dataclasses.replace(SceneOptions(), extra_steps=1, refine_px=0.001)  # every change material
+    last = []
+    monkeypatch.setattr(scenemodel, "_moved", lambda *args: last.append(_moved(*args)) or last[-1])
+    fit = fit_tile(prepare({"frames": frames, "motion": told}, options)[0])
+    assert len(last) >= 2  # moved before the last step and by it
+    assert all(np.array_equal(p, q) for p, q in zip(fit.points, last[-1][0]))
 
 
 def _points(motion, shape):

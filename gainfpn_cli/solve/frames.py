@@ -21,13 +21,13 @@ def refine_frames(forward, s, predicted, a, y, valid, noise, shape, *, scale: in
     Where frame ``t``'s pixels see the first frame moves by a quadratic field over the tile (6
     coefficients per axis) and its exposure by a factor, fitted to the residuals with the noise
     model's weights (plain squares: discounting the worst-fitting readings, as the scene step does,
-    would discount the edges that show a misregistration most). A frame is changed only where the
-    step is significant against the noise (chi-square of its 13 parameters above
-    :data:`REFINE_CHI2`) and material (RMS move above ``refine_px`` or exposure change above
-    ``refine_exposure``): warps the burst follows are left as they are. The steps are taken about
+    would discount the edges that show a misregistration most). A frame's change counts only where
+    its step is significant against the noise (chi-square of its 13 parameters above
+    :data:`REFINE_CHI2`): warps the burst follows are left as they are. The steps are taken about
     their mean over the frames. Returns ``(moves (frames, pixels, 2) grid px, exposure factors
     (frames,), material (frames,))``: the moves and factors of every frame whose step is
-    significant, and which of them are material."""
+    significant (zero moves and factor 1 elsewhere), and which of them are also material (RMS move
+    above ``refine_px`` or exposure change above ``refine_exposure``)."""
     n = a.size
     n_frames = y.size // n
     grid = s.reshape(scale * shape[0], scale * shape[1])
