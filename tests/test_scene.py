@@ -142,9 +142,9 @@ def test_warps_the_burst_follows_stay_where_they_are(noise):
 @pytest.mark.parametrize("shift, share", [((0.04, -0.02), 0.4), ((0.0, 0.045), 0.3)])
 def test_misregistrations_below_refine_px_are_refined(shift, share):
     # one frame told 0.045 px off (under refine_px, which a step after the last must pass): refined
-    # before the last step and, what is left significant after it, without another step; the worst
-    # frame's error 0.0447 -> 0.0155 px and 0.045 -> 0.0104 px (0.0209 and 0.0169 before the last
-    # step alone; the others' 0.002-0.011)
+    # before the last step, and what is left significant after it moves the warps returned (not the
+    # fit); the worst frame's error 0.0447 -> 0.0155 px and 0.045 -> 0.0104 px (0.0209 and 0.0169
+    # px before the last step alone; the others' 0.002-0.011)
     frames, motion, _ = _model_burst()
     told, _ = _off_model(motion, shift, 0.0, 1.0)
     tile = prepare({"frames": frames, "motion": told}, SceneOptions())[0]
