@@ -128,6 +128,10 @@ def evaluate(est_dir, sim_dir, out_dir, overwrite, as_json, quiet):
     click.echo(f"{'':24}{'before':>10}{'after':>10}")
     click.echo(f"{'gain FPN (%)':24}{scores['input_fpn_percent']:>10.2f}{scores['residual_fpn_percent']:>10.2f}")
     click.echo(f"{'MSE frame 0 (DN^2)':24}{scores['mse_before']:>10.2f}{scores['mse_after']:>10.2f}")
+    if scores.get("plane_residual_fpn_percent"):
+        click.echo("gain FPN after, by CFA plane (%): " + ", ".join(
+            f"{name} {value:.2f}" if value is not None else f"{name} not estimated"
+            for name, value in scores["plane_residual_fpn_percent"].items()))
     click.echo(f"MSE reduction {ratio:.1f}x (temporal-noise floor {scores['mse_floor']:.2f} DN^2), "
                f"{scores['estimated_percent']:.0f} % of pixels estimated")
     after = scores["frame_mse_after"]

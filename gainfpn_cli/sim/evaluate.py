@@ -39,7 +39,22 @@ def evaluate(out_dir: Path, sim_dir: Path) -> dict:
     n_fit = len(report.inputs) - (1 if report.holdout else 0)  # one frame is held out to check k
     bound = residual_bound_percent(truth, est, n_fit)
     deciles = confidence_deciles(k[..., 0], truth.gain, sigma_from_confidence(confidence), est)
-    return {**result, "residual_bound_percent": bound, "bound_frames": n_fit, "confidence_deciles": deciles}
+    return {**result, "residual_bound_percent": bound, "bound_frames": n_fit, "confidence_deciles": deciles,
+            "plane_residual_fpn_percent": plane_residuals(k[..., 0], est, truth.gain, attrs.get(ATTR_CFA))}
+
+
+def plane_residuals(k: np.ndarray, est: np.ndarray, gain: np.ndarray, cfa: str | None) -> dict:
+    """The residual gain FPN (percent) of each colour plane of a CFA mosaic over its estimated
+    photosites, by plane name (``R@00``, ...; empty without a CFA, None for a plane with none)."""
+    from ..geometry.planes import plane_views
+
+    if not cfa:
+        return {}
+    out = {}
+    for name, pick, _ in plane_views(cfa, ("Y",)):
+        inside = pick(est[..., None])
+        out[name] = residual_fpn_percent(pick(k[..., None]), pick(gain[..., None]), inside) if inside.any() else None
+    return out
 
 
 def _read_report(out_dir: Path) -> Report:
