@@ -9,6 +9,7 @@ import numpy as np
 
 from ..errors import EstimationError, InputError
 from ..files import ATTR_CFA, find_frames, read_exr_planes, read_frame, stamp
+from ..geometry.planes import plane_views
 from ..metrics import confidence_deciles, mse, residual_fpn_percent
 from ..outputs import read_gain_map
 from ..report import Report
@@ -46,8 +47,6 @@ def evaluate(out_dir: Path, sim_dir: Path) -> dict:
 def plane_residuals(k: np.ndarray, est: np.ndarray, gain: np.ndarray, cfa: str | None) -> dict:
     """The residual gain FPN (percent) of each colour plane of a CFA mosaic over its estimated
     photosites, by plane name (``R@00``, ...; empty without a CFA, None for a plane with none)."""
-    from ..geometry.planes import plane_views
-
     if not cfa:
         return {}
     out = {}
