@@ -184,7 +184,7 @@ def _estimate(burst: LoadedBurst, cfg: Config, solver: solving.Solver, progress:
     if codes is not None:  # no gain is known there; corrected frames repair them (output.repair)
         defective.leave_out(k, confidence, codes, burst.cfa, burst.channels)
     in_frame_pixels = np.stack([S_motion @ H @ np.linalg.inv(S_motion) for H in motion.homographies])
-    solving.lost_band_counted(burst, frames, in_frame_pixels, slice(0, n_fit), confidence, plane_reports, solver)
+    solving.lost_band_counted(burst, frames, in_frame_pixels, slice(0, n_fit), k, confidence, plane_reports, solver)
     sigma = sigma_from_confidence(confidence)
     # only the accurate and scene solvers' confidence is a calibrated standard error
     calibrated = (confidence > 0).any() and all(p.method in CALIBRATED_METHODS for p in plane_reports.values())

@@ -21,7 +21,7 @@ from .report import PlaneReport, SolverChoice
 from .solve import bootstrap
 from .solve.accurate import AccurateOptions, comparison_pairs, solve_accurate, solve_accurate_many
 from .solve.aliasing import aliasing
-from .solve.band import gauge_share, lost_share, shifts_at_centre
+from .solve.band import gauge_share, lost_share, shared_band, shifts_at_centre
 from .solve.blocks import solve_paper
 from .solve.fpnmodel import measure, pooled_priors, select_model
 from .solve.halves import Halves
@@ -158,15 +158,16 @@ def grids_of(burst: LoadedBurst, frames: np.ndarray, method: str) -> list:
     return list(solve_grids(burst.cfa, burst.channels, frames.shape[1:3], greens_together=method == "accurate"))
 
 
-def lost_band_counted(burst: LoadedBurst, frames: np.ndarray, homographies: np.ndarray, used: slice,
+def lost_band_counted(burst: LoadedBurst, frames: np.ndarray, homographies: np.ndarray, used: slice, k: np.ndarray,
                       confidence: np.ndarray, reports: dict, solver: Solver) -> None:
     """The written ``sigma_k`` (in ``confidence``, in place) of every plane with a pixel FPN model, with
     the band of its gains the solver never estimates added: ``s^2`` (the plane's measured pixel FPN
     prior) times the share a white pattern loses (:mod:`solve.band`; 0.0034 on a 240x320 8-bit burst
     of 3 px shake, so 0.085 %^2 at 5 % FPN, as large as ``sigma_k^2`` of its most precise pixels).
     Every fit of the burst loses it alike, so halves of the frames cannot measure it (docs/method.md
-    section 11). ``homographies`` are the frames' ``H_t_ref`` in frame pixels (the reference first),
-    ``used`` the fitted ones."""
+    section 11). The scene solver, which fits no halves, also gets the error its pixels share as
+    ``k`` (the written map) shows it (:func:`solve.band.shared_band`). ``homographies`` are the
+    frames' ``H_t_ref`` in frame pixels (the reference first), ``used`` the fitted ones."""
     for grid in grids_of(burst, frames, solver.method):
         methods = {reports[name].method for name in grid.positions if name in reports}
         if methods == {"accurate"}:
@@ -183,11 +184,14 @@ def lost_band_counted(burst: LoadedBurst, frames: np.ndarray, homographies: np.n
             if name not in grid.positions or report is None or report.fpn_model != "pixel" \
                     or not report.input_fpn_percent:
                 continue
-            band = np.float32((report.input_fpn_percent["pixel"] / 100.0) ** 2 * share)
-            if band > 0:
-                plane = pick(confidence)  # float32: sigma_k^2 of 1e-8 and more, the band's ~1e-5
-                sigma = np.sqrt(sigma_from_confidence(plane) ** 2 + band)
-                plane[...] = np.where(plane > 0, confidence_from_sigma(sigma), 0)
+            fpn = report.input_fpn_percent["pixel"] / 100.0
+            plane = pick(confidence)  # float32: sigma_k^2 of 1e-8 and more, the band's ~1e-5
+            sigma = sigma_from_confidence(plane)
+            band = np.float32(fpn**2 * share)
+            if methods == {"scene"}:
+                band = band + shared_band(pick(k), sigma, plane > 0, fpn).astype(np.float32)
+            if np.any(band > 0):
+                plane[...] = np.where(plane > 0, confidence_from_sigma(np.sqrt(sigma**2 + band)), 0)
 
 
 def solve_planes(burst, frames, excluded, exposures, used: slice, in_frame, solver: Solver, progress, *,

@@ -1,7 +1,9 @@
-"""The band of the gains the accurate solver never estimates (solve.band)."""
+"""The band of the gains the accurate solver never estimates, and the error the pixels share that k's own
+band shows (solve.band)."""
 
 import numpy as np
 import pytest
+from scipy.ndimage import gaussian_filter
 
 from gainfpn_cli import metrics
 from gainfpn_cli.sim.motion import Shake
@@ -10,7 +12,7 @@ from gainfpn_cli.sim.simulate import simulate_burst
 from gainfpn_cli.geometry.cfa import green_lattice
 from gainfpn_cli.geometry.planes import plane_to_mosaic
 from gainfpn_cli.solve.accurate import AccurateOptions, comparison_pairs, partner_frames, solve_accurate
-from gainfpn_cli.solve.band import RESOLVED, gauge_share, lost_share, shifts_at_centre
+from gainfpn_cli.solve.band import SHARED_SIGMA, RESOLVED, gauge_share, lost_share, shared_band, shifts_at_centre
 
 NOISELESS = with_overrides(PRESETS["paper"], read_noise_e=0.0, shot_noise=False, adc_bits=16)
 
@@ -71,3 +73,84 @@ def test_shifts_are_in_the_grid_s_own_pixels():
     np.testing.assert_allclose(plane[1], [1.5, -1.0], atol=1e-12)
     lattice = green_lattice("RGGB", (120, 160))
     np.testing.assert_allclose(shifts_at_centre(homographies, lattice.S, lattice.shape)[1], [0.5, 2.5], atol=1e-12)
+
+
+def _white_gains(shape, fpn, noise, seed):
+    """k of a white pixel FPN ``fpn`` estimated with a white error ``noise`` (both relative), gauged (mean 1)."""
+    rng = np.random.default_rng(seed)
+    k = 1.0 / (1.0 + fpn * rng.standard_normal(shape)) + noise * rng.standard_normal(shape)
+    return k / k.mean()
+
+
+def _smooth_field(shape, width, rms, seed):
+    field = gaussian_filter(np.random.default_rng(seed).standard_normal(shape), width, mode="wrap")
+    return field * rms / field.std()
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_white_gains_and_white_errors_show_no_shared_error(seed):
+    # k's band then holds only what the FPN and the errors put there, which is subtracted; the scatter
+    # of the neighbourhoods' power, clipped at 0, leaves 6-22 % of that band's (seeds 1-10)
+    shape, fpn, noise = (240, 320), 0.05, 0.01
+    k = _white_gains(shape, fpn, noise, seed)
+    found = shared_band(k, np.full(shape, noise), np.ones(shape, bool), fpn)
+    white = (fpn**2 + noise**2) / (4 * np.pi * SHARED_SIGMA**2)
+    assert found.mean() < 0.3 * white, (found.mean(), white)
+
+
+@pytest.mark.parametrize("seed, width", [(1, 12.0), (2, 24.0)])
+def test_a_smooth_error_is_measured_where_it_is(seed, width):
+    # a smooth error of 1 % RMS over the left half: a 4 px low-pass keeps width^2 / (width^2 + 16) of its
+    # variance (Gaussian filters of white noise), which is what is found there, and nothing on the right
+    shape, fpn, noise, rms = (240, 320), 0.05, 0.01, 0.01
+    error = _smooth_field(shape, width, rms, seed + 10)
+    error[:, 160:] = 0.0
+    k = _white_gains(shape, fpn, noise, seed) + error
+    found = shared_band(k, np.full(shape, noise), np.ones(shape, bool), fpn)
+    kept = width**2 / (width**2 + SHARED_SIGMA**2)
+    left, right = found[:, 16:130].mean(), found[:, 190:].mean()
+    assert left / (kept * rms**2) == pytest.approx(1.0, abs=0.25), (left, kept * rms**2)
+    assert right < 0.05 * rms**2
+
+
+def test_pixels_not_estimated_count_for_nothing():
+    shape = (120, 160)
+    k = _white_gains(shape, 0.05, 0.01, 3)
+    est = np.ones(shape, bool)
+    est[:, :40] = False
+    k[~est] = 5.0  # whatever a pixel not estimated holds
+    found = shared_band(k, np.where(est, 0.01, np.inf), est, 0.05)
+    assert np.all(found[~est] == 0)
+    assert np.all(np.isfinite(found))
+    assert found[:, 60:].mean() < 0.3 * (0.05**2 + 0.01**2) / (4 * np.pi * SHARED_SIGMA**2)
+
+
+@pytest.mark.parametrize("method", ["scene", "accurate"])
+def test_the_scene_solver_s_written_sigma_counts_the_shared_band(method):
+    # a smooth 1 % error over the left half of a map: the scene solver's written sigma_k takes it up
+    # there (and only there); the accurate solver's, whose halves measure what its fits share, adds its
+    # lost band alike everywhere
+    from types import SimpleNamespace
+
+    from gainfpn_cli.report import AccurateStats, PlaneReport
+    from gainfpn_cli.solve.result import confidence_from_sigma, sigma_from_confidence
+    from gainfpn_cli.solving import lost_band_counted
+
+    shape, fpn, noise = (240, 320), 0.05, 0.01
+    error = _smooth_field(shape, 12.0, 0.01, 5)
+    error[:, 160:] = 0.0
+    k = (_white_gains(shape, fpn, noise, 4) + error)[..., None].astype(np.float32)
+    confidence = np.full(k.shape, confidence_from_sigma(np.float32(noise)), np.float32)
+    burst = SimpleNamespace(cfa=None, channels=("Y",))
+    solver = SimpleNamespace(method=method, scene=SimpleNamespace(gauge_sigma=32.0),
+                             accurate=AccurateOptions(partners=0))
+    report = PlaneReport(method, "Y", AccurateStats(1, (1,), 0, 0, 0.8), "pixel", {}, {"pixel": 100 * fpn})
+    homographies = np.stack([np.eye(3)] + [np.array([[1, 0, 2.0 * t], [0, 1, -t], [0, 0, 1]]) for t in range(1, 6)])
+    lost_band_counted(burst, np.zeros((6, *shape), np.float32), homographies, slice(0, 6), k, confidence,
+                      {"Y": report}, solver)
+    added = sigma_from_confidence(confidence[..., 0]).astype(np.float64) ** 2 - noise**2
+    left, right = added[:, 16:130].mean(), added[:, 190:].mean()
+    if method == "scene":
+        assert left > 0.6 * 0.01**2 and right < 0.05 * 0.01**2, (left, right)
+    else:
+        assert left == pytest.approx(right, rel=0.01), (left, right)  # its lost band alone, the same everywhere
