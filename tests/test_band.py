@@ -12,7 +12,7 @@ from gainfpn_cli.sim.simulate import simulate_burst
 from gainfpn_cli.geometry.cfa import green_lattice
 from gainfpn_cli.geometry.planes import plane_to_mosaic
 from gainfpn_cli.solve.accurate import AccurateOptions, comparison_pairs, partner_frames, solve_accurate
-from gainfpn_cli.solve.band import SHARED_SIGMA, RESOLVED, gauge_share, lost_share, shared_band, shifts_at_centre
+from gainfpn_cli.solve.band import RESOLVED, SHARED_SIGMA, gauge_share, lost_share, shared_band, shifts_at_centre
 
 NOISELESS = with_overrides(PRESETS["paper"], read_noise_e=0.0, shot_noise=False, adc_bits=16)
 

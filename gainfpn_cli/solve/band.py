@@ -14,6 +14,8 @@ frequencies at every pixel, an error every fit of the burst makes alike. Measure
 240x320 8-bit burst (procedural scene, seed 1, 8 frames): the error's share of the true pattern
 0.98 / 0.91 / 0.42 / 0.04 at 0.01-0.02 / 0.02-0.03 / 0.03-0.05 / 0.05-0.08 cycles per pixel, this
 model 0.98 / 0.87 / 0.40 / 0.03 (the gauge alone 0.75 / 0.45 / 0.13 / 0.01).
+
+Also the error the scene solver's pixels share, which k's own band shows (:func:`shared_band`).
 """
 
 from __future__ import annotations
@@ -67,7 +69,8 @@ def gauge_share(gauge_sigma: float) -> float:
 #: share, and (times :data:`SHARED_REACH`) of the neighbourhood its power is averaged over. On the
 #: scene solver's 240x320 8-bit bursts of ``coffee`` and ``rocket`` (50 %, 9 frames; the tuning
 #: bursts) a band of 4 px averaged over 16 px took the lowest tenth of sigma_k from 1.33 / 1.26 to
-#: 1.13 / 0.98 (a band of 8 px: 1.19 / 1.01, 16 px: 1.24 / 1.02; the error lies at 4-16 px). On white
+#: 1.14 / 0.99 (``python docs/bench/confidence.py coffee,rocket paper 9``; a band of 8 px read 1.19 /
+#: 1.01, of 16 px 1.24 / 1.02 on the same maps: the error lies at 4-16 px). On white
 #: gains the neighbourhoods' scatter, clipped at 0, adds 6-22 % of the white band's power (10 seeds of
 #: 240x320 5 % FPN; under 0.003 %^2, where sigma_k^2 is 0.09 %^2 or more).
 SHARED_SIGMA = 4.0
