@@ -72,7 +72,7 @@ def gauge_share(gauge_sigma: float) -> float:
 #: 1.14 / 0.99 (``python docs/bench/confidence.py coffee,rocket paper 9``; a band of 8 px read 1.19 /
 #: 1.01, of 16 px 1.24 / 1.02 on the same maps: the error lies at 4-16 px). On white
 #: gains the neighbourhoods' scatter, clipped at 0, adds 6-22 % of the white band's power (10 seeds of
-#: 240x320 5 % FPN; under 0.003 %^2, where sigma_k^2 is 0.09 %^2 or more).
+#: 240x320 5 % FPN and 1 % error: 0.008-0.028 %^2 of a band of 0.129 %^2).
 SHARED_SIGMA = 4.0
 SHARED_REACH = 4.0
 
@@ -87,7 +87,10 @@ def shared_band(k: np.ndarray, sigma: np.ndarray, est: np.ndarray, fpn: float) -
     The scene solver's noise probe sees the noise; a misfit the latent scene and the gains trade
     over a few pixels (interpolation of sharp detail, a warp's residual error) moves k alike over
     them, and a gain pattern that has no such band is told from it: its white part is subtracted.
-    A real gain pattern with structure at these scales is read as error (sigma_k too large)."""
+    A real gain pattern with structure at these scales, and the column or row base a pixel model
+    keeps in k, is read as error (sigma_k too large); with k shrunk by a pixel model the white part
+    subtracted is more than the shrunk map holds, so on noisy planes the error is under-measured
+    (docs/limits.md, "Confidence")."""
     from ..geometry.resample import low_pass
 
     reach = SHARED_REACH * SHARED_SIGMA
