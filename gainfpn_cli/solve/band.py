@@ -69,33 +69,37 @@ def gauge_share(gauge_sigma: float) -> float:
 #: share, and (times :data:`SHARED_REACH`) of the neighbourhood its power is averaged over. On the
 #: scene solver's 240x320 8-bit bursts of ``coffee`` and ``rocket`` (50 %, 9 frames; the tuning
 #: bursts) a band of 4 px averaged over 16 px took the lowest tenth of sigma_k from 1.33 / 1.26 to
-#: 1.14 / 0.99 (``python docs/bench/confidence.py coffee,rocket paper 9``; a band of 8 px read 1.19 /
+#: 1.12 / 0.98 (``python docs/bench/confidence.py coffee,rocket paper 9``; a band of 8 px read 1.19 /
 #: 1.01, of 16 px 1.24 / 1.02 on the same maps: the error lies at 4-16 px). On white
 #: gains the neighbourhoods' scatter, clipped at 0, adds 6-22 % of the white band's power (10 seeds of
-#: 240x320 5 % FPN and 1 % error: 0.008-0.028 %^2 of a band of 0.129 %^2).
+#: 240x320 5 % FPN, the map shrunk: 0.008-0.027 %^2 of 0.120 %^2 at 1 % error, 7-20 % at 5 %).
 SHARED_SIGMA = 4.0
 SHARED_REACH = 4.0
 
 
 def shared_band(k: np.ndarray, sigma: np.ndarray, est: np.ndarray, fpn: float) -> np.ndarray:
-    """Per pixel, the variance of an error the pixels near it share, measured on ``k`` itself
-    (gauged: its low band is 1): the power of k's band wider than :data:`SHARED_SIGMA` px (averaged
-    over :data:`SHARED_REACH` times that) beyond what a white pixel FPN of ``fpn`` (relative) and
-    k's own errors (``sigma``, white) put there, ``(fpn^2 + sigma^2) / (4 pi SHARED_SIGMA^2)``; 0
-    where k is not estimated (``est`` False) or nothing is left.
+    """Per pixel, the variance of an error the pixels near it share, measured on ``k`` itself: the
+    power of k's band wider than :data:`SHARED_SIGMA` px (averaged over :data:`SHARED_REACH` times
+    that) beyond what a white pixel FPN and k's own errors put there; 0 where k is not estimated
+    (``est`` False) or nothing is left.
+
+    ``k`` is a pixel model's written map (gauged: its low band is 1): each pixel's deviation shrunk
+    by ``w = s^2 / (s^2 + sigma_0^2)``, ``s = fpn`` (relative) the prior, ``sigma = sqrt(w) sigma_0``
+    its written sigma_k. A white deviation of variance ``s^2 + sigma_0^2`` so holds
+    ``w^2 (s^2 + sigma_0^2) = s^2 - sigma^2``, of which a band of ``b`` px keeps ``1 / (4 pi b^2)``;
+    a shared error ``e`` it holds as ``w e``, which is what the written sigma_k must count.
 
     The scene solver's noise probe sees the noise; a misfit the latent scene and the gains trade
     over a few pixels (interpolation of sharp detail, a warp's residual error) moves k alike over
     them, and a gain pattern that has no such band is told from it: its white part is subtracted.
-    A real gain pattern with structure at these scales, and the column or row base a pixel model
-    keeps in k, is read as error (sigma_k too large); with k shrunk by a pixel model the white part
-    subtracted is more than the shrunk map holds, so on noisy planes the error is under-measured
-    (docs/limits.md, "Confidence")."""
+    A real gain pattern with structure at these scales, and a column or row base the pixel model
+    keeps in k (which on the scene solver's bursts is mostly error: docs/limits.md, "Confidence"),
+    is read as error."""
     from ..geometry.resample import low_pass
 
     reach = SHARED_REACH * SHARED_SIGMA
     band = np.where(est, low_pass(k, SHARED_SIGMA, est) - 1.0, 0.0)
     power = low_pass(band**2, reach, est)
-    own = low_pass(np.where(est, sigma, 0.0) ** 2, reach, est)
-    excess = power - (fpn**2 + own) / (4.0 * np.pi * SHARED_SIGMA**2)
+    white = np.where(est, np.maximum(fpn**2 - np.where(est, sigma, 0.0) ** 2, 0.0), 0.0)
+    excess = power - low_pass(white, reach, est) / (4.0 * np.pi * SHARED_SIGMA**2)
     return np.where(est, np.maximum(excess, 0.0), 0.0)
