@@ -1,11 +1,14 @@
 """Is the written confidence honest? (docs/limits.md, "Confidence")
 
-    python docs/bench/confidence.py [SCENES [PRESETS [FRAMES]]]   # default: moon,camera paper,raw12 9,16
+    python docs/bench/confidence.py [SCENES [PRESETS [FRAMES [EXPOSURES]]]]   # default: moon,camera paper,raw12 9,16 0.5,0.075
     python docs/bench/confidence.py fit [PARTNERS]   # the accurate solver's own sigma_k by frame count
 
 Bursts of 240x320 rendered from scikit-image's sample photographs (not a dependency of gainfpn:
 ``pip install scikit-image``), 8-bit mono (``paper``) and 12-bit RGGB (``raw12``), at 50 % and
-7.5 % exposure, of 9 and 16 frames plus one more that no fit sees. One JSON line per burst: per
+7.5 % exposure (scene value 1 at that share of the full well; a linearised photograph's mean is
+0.07-0.27 of that, so 7.5 % puts the mean reading at 0.5-2 % of full scale), or at a mean level
+(``m7.5``: the mean reading 7.5 % of full scale, issue 21's dark bursts), of 9 and 16 frames plus
+one more that no fit sees. One JSON line per burst: per
 decile of the written sigma_k, the RMS of the actual error of k over the RMS sigma_k (1 is
 honest); the MSE before over after correction on the unseen frame; the residual gain FPN and
 the reported input pixel FPN against the truth. About 15 minutes for the default.
@@ -45,9 +48,12 @@ def scene_of(name):
 
 
 def case(scene, preset, exposure, frames, seed=7):
-    """One burst's figures (see the module)."""
+    """One burst's figures (see the module); ``exposure`` a number, or ``mL`` for a mean level of L %."""
     s = PRESETS[preset]
-    b = simulate_burst(shape=(240, 320), n_frames=frames + 1, sensor=s, exposure=exposure, scene=scene_of(scene),
+    image = scene_of(scene)
+    if isinstance(exposure, str) and exposure.startswith("m"):
+        exposure = round(float(exposure[1:]) / 100 / (float(np.mean(image)) if np.ndim(image) else 0.5), 4)
+    b = simulate_burst(shape=(240, 320), n_frames=frames + 1, sensor=s, exposure=float(exposure), scene=image,
                        seed=seed)
     fr = b.frames.astype(np.float32) - s.black_level
     t = time.perf_counter()
@@ -63,7 +69,9 @@ def case(scene, preset, exposure, frames, seed=7):
     err = p / p[use].mean() - 1
     estimated = bool(use.any())  # none if every plane was rejected
     deciles = [round(d, 2) for d in confidence_deciles(k, a, sigma_from_confidence(conf), use)]
-    return dict(scene=scene, preset=preset, exposure=exposure, frames=frames, s=round(dt, 1), status=e.report.status,
+    level = round(100 * float(fr[:-1].mean()) / (s.white_level - s.black_level), 2)
+    return dict(scene=scene, preset=preset, exposure=exposure, level=level, frames=frames, s=round(dt, 1),
+                status=e.report.status,
                 mse_unseen=round(mse, 3), residual=round(float(100 * np.std(err[use])), 3) if estimated else None,
                 prnu_pixel=round(e.report.prnu_percent.pixel, 2),
                 truth_pixel=round(100 * float(np.std(a / a.mean())), 2), deciles=deciles,
@@ -103,6 +111,7 @@ if __name__ == "__main__":
     counts = [int(f) for f in sys.argv[3].split(",")] if len(sys.argv) > 3 else (9, 16)
     for scene in scenes:
         for preset in (sys.argv[2].split(",") if len(sys.argv) > 2 else ("paper", "raw12")):
-            for exposure in (0.5, 0.075):
+            for exposure in (sys.argv[4].split(",") if len(sys.argv) > 4 else (0.5, 0.075)):
+                exposure = exposure if str(exposure).startswith("m") else float(exposure)
                 for frames in counts:
                     print(json.dumps(case(scene, preset, exposure, frames)), flush=True)
