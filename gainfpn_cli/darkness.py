@@ -22,10 +22,21 @@ DARK_WINDOW = 5
 DARK_WARNING = 0.1
 
 
-def floors(noise: dict, min_snr: float) -> dict:
+#: Highest floor, as a share of the full scale: the noise the defect search measures is the readings'
+#: scatter about the scene predicted from the other frames, and on a fine texture in a CFA plane that
+#: prediction errs by far more than the noise (RGGB `grass` and `brick` at a 40 % mean level: 240-300 DN
+#: at 900-2300 DN, floors at 34-60 % of full scale, every photosite "too dark"). No sensor a lab
+#: calibrates reads an SNR under 5 at 5 % of its full scale (a 2000 e- well with 10 e- read noise
+#: reaches 5 at 3.2 %; the simulator's sensors at 0.16 % (raw12) and 0.85 % (paper)).
+MAX_FLOOR = 0.05
+
+
+def floors(noise: dict, min_snr: float, full_scale: float | None = None) -> dict:
     """Each plane's level (DN) at or below which its photosites are too dark: where a reading is
-    ``min_snr`` times its noise (``noise``: plane name -> :class:`solve.noise.NoiseModel`, or None: no floor)."""
-    return {name: 0.0 if model is None else model.level_at_snr(min_snr) for name, model in noise.items()}
+    ``min_snr`` times its noise (``noise``: plane name -> :class:`solve.noise.NoiseModel`, or None: no
+    floor), at most :data:`MAX_FLOOR` of ``full_scale`` (DN; None: unknown, no limit)."""
+    ceiling = np.inf if full_scale is None else MAX_FLOOR * full_scale
+    return {name: 0.0 if model is None else min(model.level_at_snr(min_snr), ceiling) for name, model in noise.items()}
 
 
 def too_dark(burst, frames: np.ndarray, floors: dict | None) -> np.ndarray | None:

@@ -148,7 +148,8 @@ def _estimate(burst: LoadedBurst, cfg: Config, solver: solving.Solver, progress:
                                warp=in_frame, saturation=burst.saturation, dark_hot=burst.dark_hot)
         codes = found.codes if cfg.input.defects else None
         if cfg.solver.min_snr > 0:
-            solver = dataclasses.replace(solver, floors=darkness.floors(found.noise, cfg.solver.min_snr))
+            floors = darkness.floors(found.noise, cfg.solver.min_snr, burst.saturation)
+            solver = dataclasses.replace(solver, floors=floors)
         timings["defects_s"] = time.perf_counter() - t0
 
     # the defects' readings are replaced from their neighbours while they are solved and checked

@@ -11,6 +11,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from gainfpn_cli import api, darkness
+from gainfpn_cli.geometry.planes import plane_to_mosaic
 from gainfpn_cli.geometry.warps import GlobalWarp
 from gainfpn_cli.report import PlaneReport
 from gainfpn_cli.sim.scenes import procedural_scene
@@ -131,3 +132,33 @@ def test_a_burst_falling_to_black_is_mended_by_the_floor(shape, seed):
     assert any(worse), residuals
     assert all(r < 0.6 * r0 for r, r0, w in zip(residuals[5.0], residuals[0.0], worse) if w), residuals
     assert max(residuals[5.0]) < 1.25 and mse[5.0] > max(mse[0.0], 1.0), (residuals, mse)
+
+
+def test_the_floor_is_at_most_a_share_of_full_scale():
+    polluted = NoiseModel(70000.0, 65.0)  # a fine texture's prediction error read as noise: ~2400 DN at SNR 5
+    legit = NoiseModel((3.0 * 0.2) ** 2 + 1 / 12, 0.2)  # the raw12 sensor's: about 6 DN
+    found = darkness.floors({"R@00": polluted, "G@01": legit, "B@11": None}, 5.0, 3839.0)
+    assert found["R@00"] == pytest.approx(darkness.MAX_FLOOR * 3839.0)
+    assert found["G@01"] == legit.level_at_snr(5.0) and found["B@11"] == 0.0
+    assert darkness.floors({"R@00": polluted}, 5.0)["R@00"] == polluted.level_at_snr(5.0)  # full scale unknown
+
+
+def test_a_bright_fine_texture_is_not_too_dark():
+    # 12-bit RGGB, a texture finer than a colour plane samples, at a 40 % mean level: the defect search's
+    # scatter about the predicted scene is its prediction error (1640 DN at SNR 5 on the red plane): without
+    # the cap the estimate stops, every photosite too dark (as RGGB grass and brick at 40 % did)
+    from scipy.ndimage import gaussian_filter
+
+    sensor = PRESETS["raw12"]
+    rng = np.random.default_rng(1)
+    texture = gaussian_filter(rng.random((640, 768)), 1.0)
+    texture = np.clip(0.5 + 0.2 * (texture - texture.mean()) / texture.std(), 0.02, 1).astype(np.float32)
+    burst = simulate_burst(shape=(160, 192), n_frames=6, sensor=sensor, exposure=0.8, scene=texture, seed=2)
+    frames = burst.frames.astype(np.float32) - sensor.black_level
+    saturation = sensor.white_level - sensor.black_level
+    red = GlobalWarp(burst.homographies[:-1]).conjugate(plane_to_mosaic((0, 0)))  # the red plane's motion
+    noise = D.survey(frames[:-1, 0::2, 0::2], red, saturation=saturation).noise
+    assert noise.level_at_snr(5.0) > 4 * darkness.MAX_FLOOR * saturation, noise  # polluted (the sensor's: 6 DN)
+    result = api.estimate(frames, cfa=sensor.cfa, saturation=saturation)
+    for plane in result.report.planes.values():
+        assert plane.floor_dn <= darkness.MAX_FLOOR * saturation and plane.too_dark_percent == 0.0
