@@ -93,7 +93,7 @@ def shared_band(k: np.ndarray, sigma: np.ndarray, est: np.ndarray, fpn: float) -
     over a few pixels (interpolation of sharp detail, a warp's residual error) moves k alike over
     them, and a gain pattern that has no such band is told from it: its white part is subtracted.
     A real gain pattern with structure at these scales, and a column or row base the pixel model
-    keeps in k (which on the scene solver's bursts is mostly error: docs/limits.md, "Confidence"),
+    keeps in k (which on the scene solver's bursts is mostly error: docs/method.md section 11),
     is read as error."""
     from ..geometry.resample import low_pass
 
