@@ -75,20 +75,25 @@ def test_shifts_are_in_the_grid_s_own_pixels():
     np.testing.assert_allclose(shifts_at_centre(homographies, lattice.S, lattice.shape)[1], [0.5, 2.5], atol=1e-12)
 
 
+def _shrinkage(fpn, noise):
+    """The pixel model's ``w = fpn^2 / (fpn^2 + noise^2)``."""
+    return fpn**2 / (fpn**2 + noise**2)
+
+
 def _written(shape, fpn, noise, seed, error=0.0):
     """A pixel model's written map of a white pixel FPN ``fpn`` estimated with a white error ``noise``
     and a shared ``error`` (relative): each deviation shrunk by ``w = fpn^2 / (fpn^2 + noise^2)``,
     gauged (mean 1); and its written sigma_k, ``sqrt(w) noise``."""
     rng = np.random.default_rng(seed)
     gains = 1.0 / (1.0 + fpn * rng.standard_normal(shape))
-    w = fpn**2 / (fpn**2 + noise**2)
+    w = _shrinkage(fpn, noise)
     k = 1.0 + w * (gains - gains.mean() + noise * rng.standard_normal(shape) + error)
     return k / k.mean(), np.full(shape, np.sqrt(w) * noise)
 
 
 def _white_band(fpn, noise):
     """What a white FPN and white errors put in the written map's band: ``w^2 (fpn^2 + noise^2)``."""
-    return fpn**4 / (fpn**2 + noise**2) / (4 * np.pi * SHARED_SIGMA**2)
+    return _shrinkage(fpn, noise) ** 2 * (fpn**2 + noise**2) / (4 * np.pi * SHARED_SIGMA**2)
 
 
 def _smooth_field(shape, width, rms, seed):
@@ -130,7 +135,7 @@ def test_a_smooth_error_is_measured_where_it_is(seed, width, noise):
     error[:, 160:] = 0.0
     k, sigma = _written(shape, fpn, noise, seed, error)
     found = shared_band(k, sigma, np.ones(shape, bool), fpn)
-    w = fpn**2 / (fpn**2 + noise**2)
+    w = _shrinkage(fpn, noise)
     kept = w**2 * width**2 / (width**2 + SHARED_SIGMA**2)
     left, right = found[:, 16:130].mean(), found[:, 190:].mean()
     assert left / (kept * rms**2) == pytest.approx(1.0, abs=0.25), (left, kept * rms**2)
@@ -182,7 +187,7 @@ def test_the_scene_solver_s_written_sigma_counts_the_shared_band(method, cfa):
     lost_band_counted(burst, np.zeros((6, *frame, 1), np.float32), homographies, slice(0, 6), k, confidence,
                       reports, solver)
     added = sigma_from_confidence(confidence).astype(np.float64) ** 2 - before
-    w = fpn**2 / (fpn**2 + noise**2)
+    w = _shrinkage(fpn, noise)
     for name, pick in planes.items():
         left, right = pick(added)[:, 16:130].mean(), pick(added)[:, 190:].mean()
         if method == "accurate":

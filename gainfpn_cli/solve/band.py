@@ -100,6 +100,6 @@ def shared_band(k: np.ndarray, sigma: np.ndarray, est: np.ndarray, fpn: float) -
     reach = SHARED_REACH * SHARED_SIGMA
     band = np.where(est, low_pass(k, SHARED_SIGMA, est) - 1.0, 0.0)
     power = low_pass(band**2, reach, est)
-    white = np.where(est, np.maximum(fpn**2 - np.where(est, sigma, 0.0) ** 2, 0.0), 0.0)
+    white = np.where(est, np.maximum(fpn**2 - sigma**2, 0.0), 0.0)  # (sigma is inf where not estimated)
     excess = power - low_pass(white, reach, est) / (4.0 * np.pi * SHARED_SIGMA**2)
     return np.where(est, np.maximum(excess, 0.0), 0.0)
