@@ -331,3 +331,46 @@ def test_sigma_k_is_inf_without_a_warning_where_a_is_not_estimated():
                              np.ones(size), np.ones(est.size), est, n_frames, np.zeros(shape, bool))
     assert np.all(np.isinf(sigma[~est]))
     assert np.all(np.isfinite(sigma[est]))
+
+
+def _residual_sums(excess, readings, dof, seed):
+    """Per pixel, the sums over ``readings`` readings of the data's squared residuals and the noise
+    probe's (variance units), each reading holding ``dof`` residual degrees of freedom (the fit takes
+    the rest): chi-square draws of ``readings * dof`` degrees, the data's ``excess`` times larger."""
+    rng = np.random.default_rng(seed)
+    shape = np.shape(excess)
+    probe = rng.chisquare(readings * dof, shape)
+    data = rng.chisquare(readings * dof, shape) * excess
+    return data.astype(np.float32), probe.astype(np.float32)
+
+
+def test_residual_excess_is_not_scattered_by_few_degrees_of_freedom():
+    # 4 fitted frames of a latent scene of 4 samples per pixel leave a 5x5 window 2-12 residual degrees
+    # of freedom (gravel, 40 %): their plain ratio scatters (10th-90th percentile of its square root
+    # 0.55-1.70 of the truth here), which sorted sigma_k by that noise (tenths 0.73-1.26); shrunk,
+    # 0.77-1.24 here
+    data, probe = _residual_sums(np.full((96, 96), 2.0), readings=4, dof=1 / 16, seed=0)
+    excess = scene._excess(data, probe, np.zeros((96, 96), bool))
+    low, high = np.percentile(np.sqrt(excess[8:-8, 8:-8] / 2.0), [10, 90])
+    assert 0.75 <= low and high <= 1.3, (low, high)
+
+
+def test_residual_excess_follows_the_scene_with_many_degrees_of_freedom():
+    # 15 fitted frames (about 9 degrees of freedom a pixel): 3-4 px from a step of the model's error the
+    # ratio is the window's own, not pulled towards the other side's (measured 1.04-1.06 and 2.99-3.02,
+    # seeds 1-3; the broad window's ratio alone reads 1.49 at 4 px)
+    truth = np.ones((512, 96))
+    truth[:, 48:] = 3.0
+    data, probe = _residual_sums(truth, readings=15, dof=0.6, seed=1)
+    excess = scene._excess(data, probe, np.zeros(truth.shape, bool))
+    for column, expected in ((44, 1.0), (51, 3.0)):
+        assert np.mean(excess[8:-8, column]) == pytest.approx(expected, rel=0.1)
+
+
+def test_residual_excess_is_at_least_one_beside_black():
+    # readings that stay above black are the noise's high draws, which the fitted scene explains
+    data, probe = _residual_sums(np.full((32, 32), 0.1), readings=8, dof=0.5, seed=2)
+    black = np.zeros((32, 32), bool)
+    black[16, 16] = True
+    excess = scene._excess(data, probe, black)
+    assert np.all(excess[14:19, 14:19] >= 1.0) and np.median(excess[:8, :8]) < 0.2
