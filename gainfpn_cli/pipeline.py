@@ -162,12 +162,14 @@ def _estimate(burst: LoadedBurst, cfg: Config, solver: solving.Solver, progress:
         held_out = burst.paths[order[-1]].name if holdout else None
         tried = [_solve(burst, frames, exposures, n_fit, fit, dataclasses.replace(solver, method=method), cfg, names,
                         S_motion, progress, held_out) for method in (choice.tried if holdout else ())]
-        if tried:  # the one the held-out frame confirms best (the lowest residual ratio with k over without),
-            # where it confirms the first (the accurate solver's) at all: on data that weak, with few frames, the
-            # scene solver's sigma_k is not calibrated (docs/limits.md)
+        if tried:  # the one with the lower expected error (both calibrated; the held-out frame's ratio ranks
+            # them worse on dark bursts, docs/method.md 8c), where the check confirms the first (the accurate
+            # solver's) at all: on data that weak, with few frames, the scene solver's sigma_k is not calibrated
             confirmed = not tried[0].failed
-            solved = min(tried, key=lambda t: t.holdout.residual_ratio) if confirmed else tried[0]
-            choice = solving.tried(choice, {t.solver.method: t.holdout.residual_ratio for t in tried},
+            fpn = _pixel_fpn(tried[0].reports)
+            errors = {t.solver.method: solving.expected_error(t.confidence, frames[0], fpn) for t in tried}
+            solved = min(tried, key=lambda t: errors[t.solver.method]) if confirmed else tried[0]
+            choice = solving.tried(choice, {t.solver.method: t.holdout.residual_ratio for t in tried}, errors,
                                    solved.solver.method, confirmed)
         else:
             solved = _solve(burst, frames, exposures, n_fit, fit, solver, cfg, names, S_motion, progress, held_out)
@@ -284,6 +286,12 @@ def _solve(burst, frames, exposures, n_fit: int, fit: _Fit, solver, cfg: Config,
             grid.scatter(confidence, np.zeros(grid.shape, np.float32))
     return _Solved(solver, k, confidence, plane_reports, _Fit(motion, in_frame, excluded, moving), holdout_report,
                    failed, solve_s, time.perf_counter() - t0 - solve_s)
+
+
+def _pixel_fpn(reports: dict) -> float:
+    """The median over the planes of the input pixel FPN their reports measured (0 if none did)."""
+    measured = [p.input_fpn_percent["pixel"] / 100.0 for p in reports.values() if p.input_fpn_percent]
+    return float(np.median(measured)) if measured else 0.0
 
 
 def _check_misfit(motion, names: list[str], S_motion: np.ndarray) -> None:

@@ -13,7 +13,7 @@ from gainfpn_cli.geometry.warps import GlobalWarp
 from gainfpn_cli.sim.sensor import PRESETS
 from gainfpn_cli.sim.simulate import simulate_burst
 from gainfpn_cli.solve.aliasing import aliasing, cubic_weights, noise_gain
-from gainfpn_cli.solving import ALIASED
+from gainfpn_cli.solving import ALIASED, expected_error
 
 
 @settings(max_examples=30, deadline=None)
@@ -76,12 +76,12 @@ def test_auto_reports_its_choice_and_why(tmp_path, blur, method):
 @pytest.mark.parametrize("exposure, seed", [(0.75, 1), (0.15, 1), pytest.param(0.75, 2, marks=pytest.mark.slow),
                                             pytest.param(0.15, 2, marks=pytest.mark.slow),
                                             pytest.param(0.15, 3, marks=pytest.mark.slow)])
-def test_with_few_frames_auto_keeps_the_solver_the_held_out_frame_confirms(exposure, seed):
+def test_with_few_frames_auto_keeps_the_solver_expected_to_err_less(exposure, seed):
     # 4 fitted frames of an aliased burst: the latent scene's noise costs more than the aliasing on dark
-    # bursts, so auto runs both solvers and the hold-out frame decides. Measured against the truth (MSE
-    # ratio on a frame no fit sees), seeds 1-3: at 75 % the scene solver 8.8-10.3x, the accurate 5.0-5.8x,
-    # scene kept in all; at 15 % 1.94-2.14x against 2.13-2.23x, accurate kept in 2 of 3 (seed 1: the scene
-    # solver, 0.96 of the accurate's)
+    # bursts, so auto runs both solvers and keeps the map of the lower expected error. Measured against the
+    # truth (MSE ratio on a frame no fit sees), seeds 1-3: at 75 % the scene solver 9.3-10.5x, the accurate
+    # 5.0-5.8x, scene kept; at 15 % 1.98-2.18x against 2.13-2.24x, accurate kept in all (the lower hold-out
+    # ratio kept the scene solver at seed 1, 0.97 of the accurate's MSE ratio)
     sensor = PRESETS["paper"]
     burst = simulate_burst(shape=(96, 128), n_frames=6, sensor=sensor, exposure=exposure, scene="dead-leaves",
                            seed=seed)
@@ -98,7 +98,7 @@ def test_with_few_frames_auto_keeps_the_solver_the_held_out_frame_confirms(expos
     assert choice.tried == ("accurate", "scene") and choice.method in choice.tried
     assert "accurate" in choice.reason and f"{choice.method} kept" in choice.reason
     assert mse["auto"] == mse[choice.method]  # the kept solver's own map
-    assert mse["auto"] >= 0.9 * max(mse["accurate"], mse["scene"]), mse
+    assert mse["auto"] >= 0.98 * max(mse["accurate"], mse["scene"]), mse
 
 
 def test_with_few_frames_the_scene_solver_is_kept_only_where_the_accurate_map_is_confirmed(monkeypatch):
@@ -125,3 +125,15 @@ def test_with_few_frames_the_scene_solver_is_kept_only_where_the_accurate_map_is
     assert choice.tried == ("accurate", "scene") and choice.method == "accurate"
     assert "does not confirm the accurate solver's map" in choice.reason
     assert np.all(result.k == 1) and np.all(result.confidence == 0)
+
+
+def test_expected_error_weights_each_pixel_as_a_frame_squared_error_does():
+    from gainfpn_cli.solve.result import confidence_from_sigma
+
+    sigma = np.array([[0.01, 0.03], [0.02, 0.02]])
+    confidence = confidence_from_sigma(sigma)
+    confidence[1, 1] = 0.0  # k = 1 written: the input FPN is its error
+    level = np.array([[100.0, 10.0], [0.0, 50.0]])  # a pixel at 0 (black) adds no error to a frame
+    expected = np.sqrt((100**2 * 0.01**2 + 10**2 * 0.03**2 + 50**2 * 0.05**2) / (100**2 + 10**2 + 50**2))
+    assert expected_error(confidence, level, fpn=0.05) == pytest.approx(expected, rel=1e-5)
+    assert expected_error(confidence, np.zeros((2, 2)), fpn=0.05) == np.inf
