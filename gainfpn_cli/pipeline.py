@@ -149,7 +149,7 @@ def _estimate(burst: LoadedBurst, cfg: Config, solver: solving.Solver, progress:
         codes = found.codes if cfg.input.defects else None
         if cfg.solver.min_snr > 0:
             floors = darkness.floors(found.noise, cfg.solver.min_snr, burst.saturation)
-            solver = dataclasses.replace(solver, floors=floors)
+            solver = dataclasses.replace(solver, floors=floors, noise=found.noise)
         timings["defects_s"] = time.perf_counter() - t0
 
     # the defects' readings are replaced from their neighbours while they are solved and checked

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .burst import LoadedBurst
-from .darkness import too_dark
+from .darkness import noise_bounded, too_dark
 from .errors import EstimationError
 from .geometry.planes import plane_views, solve_grids
 from .geometry.resample import positions as warp_positions
@@ -50,6 +50,7 @@ class Solver:
     workers: int
     executor: object = None
     floors: dict | None = None  # plane name -> level (DN) at or below which a photosite is not solved
+    noise: dict | None = None  # plane name -> solve.noise.NoiseModel of its readings (the defect search's)
 
     @classmethod
     def from_config(cls, s, *, mosaic: bool, executor=None) -> "Solver":
@@ -227,6 +228,8 @@ def solve_planes(burst, frames, excluded, exposures, used: slice, in_frame, solv
     gives them as measured before."""
     k, confidence, solved = solve_raw(burst, frames, excluded, exposures, used, in_frame, solver, progress,
                                       regions=regions)
+    if solver.method == "accurate":  # the scene solver counts readings at black itself (docs/method.md 8b)
+        noise_bounded(burst, frames[used], confidence, solver.noise)
     halves = None
     if split and solver.method == "accurate" and len(range(len(frames))[used]) >= MIN_SPLIT_FRAMES:
         middle = central(burst, frames, solver)
