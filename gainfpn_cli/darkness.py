@@ -92,7 +92,9 @@ def noise_bounded(burst, frames: np.ndarray, confidence: np.ndarray, noise: dict
         return
     n = len(frames)
     level = frames.mean(axis=0, dtype=np.float64)
-    black = (frames <= 0).any(axis=0).astype(np.float32)
+    black = np.zeros(frames.shape[1:], np.float32)
+    for frame in frames:  # one frame at a time: no (F, H, W, C) mask at 12 MP x 16
+        black[frame <= 0] = 1.0
     for name, pick, _ in plane_views(burst.cfa, burst.channels):
         model = noise.get(name)
         if model is None:
