@@ -88,8 +88,7 @@ SCENE_MIN_FRAMES = 7
 #: (:func:`expected_error`) is kept: the scene's noise costs more than the aliasing on dark bursts.
 #: Measured on 240x320 paper dead leaves of 5 / 6 frames (4 / 5 fitted, seeds 3-5 / 3-4): at 75 %
 #: exposure the scene solver's MSE ratio on an unseen frame is 1.6-1.9x the accurate one's; at 15 %
-#: 0.90-0.97x; the expected error ranks them as that truth in all 10 bursts, the hold-out ratio in 9
-#: (docs/method.md 8c).
+#: 0.90-0.97x; the expected error ranks them as the truth in all 10, the hold-out ratio in 9 (method.md 8c).
 SCENE_TRIAL_FRAMES = 4
 
 
