@@ -215,6 +215,25 @@ def test_two_halves_measure_the_error_of_k_and_the_pixel_fpn():
     assert crop(77) is None  # 5929 px: too few to measure
 
 
+def test_a_half_that_tells_nothing_at_a_pixel_does_not_set_its_tenth():
+    # a few photosites where one half has next to no estimate (its sigma_k 40x the full fit's; the
+    # half's comparisons there were discounted) and the full fit strays below both halves (as six
+    # pixels of a green plane of a 16-frame RGGB photograph burst did): their Hausman terms, each
+    # -192 sigma_k^2, took the most precise tenth's factor to 0.62 where k errs as predicted
+    truth, k, confidence, halves = _halves(np.random.default_rng(8), factor=1.0)
+    sigma = sigma_from_confidence(confidence)
+    rows, columns = slice(40, 43), slice(0, 4)  # 12 pixels in the tenth of the smallest sigma_k
+    s = sigma[rows, columns]
+    k_a, k_b, confidence_b = halves.k_a.copy(), halves.k_b.copy(), halves.confidence_b.copy()
+    k[rows, columns] = truth[rows, columns] - 4 * s
+    k_a[rows, columns] = truth[rows, columns] + 4 * s
+    k_b[rows, columns] = truth[rows, columns] + 20 * s
+    confidence_b[rows, columns] = 1 / (1 + (40 * s / 0.01) ** 2)
+    halves = Halves(k_a, halves.confidence_a, k_b, confidence_b)
+    calibration = calibrate(k, sigma, halves, np.ones(k.shape), confidence > 0)
+    np.testing.assert_allclose(calibration.factor, 1.0, rtol=0.1)  # 0.62 in the first tenth with them
+
+
 def test_the_pixel_model_shrinks_by_the_measured_error():
     # sigma_k 2x too small: Paule-Mandel takes the missed noise for pixel FPN; the halves do not,
     # the written sigma_k predicts the written k's error and the map is closer to the truth

@@ -12,6 +12,7 @@ import numpy as np
 
 from ..geometry.resample import masked_window_mean
 from ..metrics import chi2_quantile
+from .result import sigma_from_confidence
 
 
 @dataclass(frozen=True)
@@ -127,12 +128,29 @@ def departure(k: np.ndarray, halves: Halves, est: np.ndarray) -> np.ndarray:
     return np.where(both & (stray > DEPARTURE_RATIO * spread), stray - spread, np.float32(0))
 
 
+#: A half whose sigma_k at a pixel is over this many times the full fit's has next to no estimate
+#: there (a 400th of the full fit's information): its Hausman term ``(k_a - k) (k_b - k)``, of
+#: variance ``sigma_a^2 sigma_b^2``, outweighs hundreds of pixels'. Measured on a 16-frame RGGB
+#: burst of the photograph `astronaut` at a 7.5 % mean level (docs/bench/confidence.py): six such
+#: pixels took a green plane's most precise tenth to a factor of 0.31 (k erred 1.03x the solver's
+#: sigma_k; 0.79 without them); a cut at 10 took the blue plane's from 1.26 to 0.31 (k erred 1.37x).
+HALF_SIGMA_RATIO = 20.0
+
+
+def informative(halves: Halves, sigma: np.ndarray) -> np.ndarray:
+    """Where both halves estimate k (confidence above 0) with a ``sigma_k`` at most
+    :data:`HALF_SIGMA_RATIO` times the full fit's ``sigma``."""
+    limit = HALF_SIGMA_RATIO * np.asarray(sigma, np.float32)
+    return np.logical_and.reduce([(c > 0) & (sigma_from_confidence(np.asarray(c, np.float32)) <= limit)
+                                  for c in (halves.confidence_a, halves.confidence_b)])
+
+
 def calibrate(k: np.ndarray, sigma: np.ndarray, halves: Halves, base: np.ndarray,
               est: np.ndarray) -> Calibration | None:
     """The :class:`Calibration` that ``halves`` measure of the full fit ``k`` (``sigma`` its
     solver's ``sigma_k``), with ``base`` the structured model the pixel FPN deviates from; None
     where all three fits see too few pixels for :data:`MIN_PARTS` parts of :data:`PART_PIXELS`."""
-    both = est & (halves.confidence_a > 0) & (halves.confidence_b > 0) & np.isfinite(sigma)
+    both = est & informative(halves, sigma) & np.isfinite(sigma)
     count = min(int(both.sum()) // PART_PIXELS, MAX_PARTS)
     if count < MIN_PARTS:
         return None
