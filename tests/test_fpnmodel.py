@@ -390,9 +390,18 @@ def test_planes_priors_are_pooled_where_they_agree_within_chance():
     assert pooled["X"] is None
     assert [c.prior for c in pooled.values() if c] == pytest.approx([0.95e-4] * 4)
     assert pooled["R@00"].prior_se == pytest.approx(np.sqrt(0.36 + 0.09 + 0.09 + 0.49) * 1e-4 / 4)
-    # a plane whose prior is far beyond its standard error keeps its own, and so do the others
-    apart = {**planes, "B@11": _measured(4.0e-4, 0.2e-4)}
-    assert fpnmodel.pooled_priors(apart) is apart
+    assert all(c.shared == 0 for c in pooled.values() if c)
+    # a plane whose prior is far above the others' (an error its halves share, aliasing): the lowest that
+    # agree are pooled, taken from the lowest up, and its excess is counted as k's error, not as FPN
+    apart = fpnmodel.pooled_priors({**planes, "B@11": _measured(4.0e-4, 0.2e-4)})
+    assert [c.prior for c in apart.values() if c] == pytest.approx([(1.4e-4 + 0.5e-4 + 0.4e-4) / 3] * 4)
+    assert [c.shared for c in apart.values() if c] == pytest.approx([0, 0, 0, 4.0e-4 - 2.3e-4 / 3])
+    sigma = np.array([0.01, np.inf], np.float32)
+    assert apart["B@11"].sigma(sigma)[0] == pytest.approx(np.sqrt(0.01**2 + 4.0e-4 - 2.3e-4 / 3), rel=1e-5)
+    assert apart["B@11"].sigma(sigma)[1] == np.inf and apart["R@00"].sigma(sigma)[0] == pytest.approx(0.01)
+    # the lowest one far below the rest: pooled alone, the others' excess counted
+    low = fpnmodel.pooled_priors({**planes, "G@10": _measured(0.01e-4, 0.001e-4)})
+    assert low["R@00"].prior == pytest.approx(0.01e-4) and low["R@00"].shared == pytest.approx(1.39e-4)
     # one plane, or priors that were not measured (the solver's own sigma_k): nothing to pool
     one = {"Y": planes["R@00"]}
     assert fpnmodel.pooled_priors(one) is one

@@ -32,20 +32,25 @@ class Calibration:
     actual error, at the RMS ``sigma_k`` of each decile (between them, interpolated in
     ``log sigma_k``; beyond them, the end ones), and the pixel FPN prior ``s^2`` (None: from the
     deviations) with its standard error (None: not measured). ``measured`` is False for the solver's
-    ``sigma_k`` taken as it is (factor 1)."""
+    ``sigma_k`` taken as it is (factor 1). ``shared`` is an error variance of every pixel that the
+    halves took for pixel FPN (a mosaic plane's prior above the other planes': :func:`fpnmodel.pooled_priors`)."""
 
     log_sigma: np.ndarray
     factor: np.ndarray
     prior: float | None
     measured: bool = True
     prior_se: float | None = None
+    shared: float = 0.0
 
     def sigma(self, sigma: np.ndarray) -> np.ndarray:
-        """``sigma_k`` (the solver's) scaled to k's actual error; inf stays inf."""
+        """``sigma_k`` (the solver's) scaled to k's actual error, ``shared`` added; inf stays inf."""
         sigma = np.asarray(sigma, np.float32)
         finite = np.isfinite(sigma) & (sigma > 0)
         scale = np.interp(np.log(np.where(finite, sigma, 1)), self.log_sigma, self.factor).astype(np.float32)
-        return np.where(finite, sigma * scale, sigma)
+        scaled = sigma * scale
+        if self.shared > 0:
+            scaled = np.sqrt(scaled**2 + np.float32(self.shared))
+        return np.where(finite, scaled, sigma)
 
 
 #: Side (px) of the window whose mean sigma_k^2 orders the deciles the pixel FPN is pooled over
