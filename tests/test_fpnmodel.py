@@ -234,6 +234,25 @@ def test_a_half_that_tells_nothing_at_a_pixel_does_not_set_its_tenth():
     np.testing.assert_allclose(calibration.factor, 1.0, rtol=0.1)  # 0.62 in the first tenth with them
 
 
+def test_a_spot_where_both_halves_failed_does_not_set_its_tenth():
+    # a spot of 20 pixels where both halves' fits failed (k off by 60 % and 20 %, their sigma_k still
+    # within HALF_SIGMA_RATIO) and the full fit by 4 %, as on a 9-frame RGGB burst of a photograph
+    # with clipped highlights: their Hausman terms, each over 10^4 times the tenth's median, took
+    # the tenth to the factor's floor (0.1) where its other 3180 pixels err as predicted
+    truth, k, confidence, halves = _halves(np.random.default_rng(9), factor=1.0)
+    sigma = sigma_from_confidence(confidence)
+    clean = calibrate(k, sigma, halves, np.ones(k.shape), confidence > 0)
+    rows, columns = slice(60, 64), slice(70, 75)  # in the fourth tenth of sigma_k
+    k_a, k_b = halves.k_a.copy(), halves.k_b.copy()
+    k[rows, columns] = truth[rows, columns] + 0.04
+    k_a[rows, columns] = truth[rows, columns] + 0.6
+    k_b[rows, columns] = truth[rows, columns] + 0.2
+    calibration = calibrate(k, sigma, Halves(k_a, halves.confidence_a, k_b, halves.confidence_b),
+                            np.ones(k.shape), confidence > 0)
+    assert calibration.factor[3] >= 0.9 * clean.factor[3]  # the spot's own error the halves cannot tell
+    np.testing.assert_allclose(np.delete(calibration.factor, 3), np.delete(clean.factor, 3), rtol=1e-6)
+
+
 def test_the_pixel_model_shrinks_by_the_measured_error():
     # sigma_k 2x too small: Paule-Mandel takes the missed noise for pixel FPN; the halves do not,
     # the written sigma_k predicts the written k's error and the map is closer to the truth
