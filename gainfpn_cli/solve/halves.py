@@ -183,10 +183,10 @@ def calibrate(k: np.ndarray, sigma: np.ndarray, halves: Halves, base: np.ndarray
 
 #: Each pixel's Hausman term is clipped at this many times the median magnitude of its tenth's
 #: (:func:`_clipped`). Where both halves' fits failed on a spot (a half of 4 frames, a bright edge by
-#: clipped readings) their terms are -100 to -250 sigma_k^2: on a 9-frame RGGB burst of the photograph
-#: `camera` at a 40 % mean level, 10 such pixels took the greens' fourth tenth to the factor's floor
-#: (0.1; k erred 0.74x the solver's sigma_k), clipped 0.71 / 0.68. For halves with independent normal
-#: errors (terms of chi-square's scale) the clip takes 0.4 % off a factor's square.
+#: clipped readings) their terms run to -40 to -260 sigma_k^2: on a 9-frame RGGB burst of the
+#: photograph `camera` at a 40 % mean level about ten such pixels took the greens' fourth tenth to
+#: the factor's floor (0.1; k erred 0.74x the solver's sigma_k), clipped 0.71 / 0.68. On synthetic
+#: halves with independent normal errors the clip takes 0-0.7 % off the factors (tests/test_fpnmodel.py).
 HAUSMAN_CLIP = 20.0
 
 
@@ -195,7 +195,8 @@ def _clipped(cross: np.ndarray, parts) -> np.ndarray:
     out = cross.copy()
     for part in parts:
         bound = HAUSMAN_CLIP * float(np.median(np.abs(cross[part])))
-        out[part] = np.clip(cross[part], -bound, bound)
+        if bound > 0:  # (halves equal to the full fit over most of the part: nothing to scale by)
+            out[part] = np.clip(cross[part], -bound, bound)
     return out
 
 
