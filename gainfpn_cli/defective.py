@@ -14,8 +14,14 @@ import numpy as np
 
 from .errors import EstimationError
 from .geometry.planes import plane_views
+from .metrics import MAD_TO_SIGMA
 from .solve import defects as D
 from .solve.repair import fill
+
+#: A photosite of a dark frame this many robust standard deviations above its plane's median is
+#: hot (its offset is at least that many times the dark frame's noise, which is at most the noise
+#: of a lit frame). At 5, a Gaussian's tail holds 3e-7 of the healthy photosites.
+Z_DARK = 5.0
 
 #: Above this fraction of defective photosites in a plane the burst is refused: no sensor is that
 #: broken, so the frames are not of one scene moving (a blank or corrupted frame, a wrong dark frame).
@@ -62,10 +68,15 @@ def find(frames: np.ndarray, cfa: str | None, channels: tuple[str, ...], *, excl
 
 
 def hot_in_dark(dark: np.ndarray, cfa: str | None, channels: tuple[str, ...]) -> np.ndarray:
-    """Hot photosites of a master dark frame ``(H, W, C)``, plane by plane, ``(H, W, C)`` bool."""
+    """Hot photosites of a master dark frame ``(H, W, C)``, plane by plane, ``(H, W, C)`` bool: above
+    the plane's median by :data:`Z_DARK` times its robust spread (read noise and dark signal
+    nonuniformity)."""
     hot = np.zeros(dark.shape, bool)
     for _, pick, _ in plane_views(cfa, channels):
-        pick(hot[None])[0][...] = D.hot_in_dark(pick(dark[None])[0])
+        plane = np.asarray(pick(dark[None])[0], np.float64)
+        centre = float(np.median(plane))
+        spread = MAD_TO_SIGMA * float(np.median(np.abs(plane - centre)))
+        pick(hot[None])[0][...] = plane > centre + Z_DARK * max(spread, np.finfo(np.float32).tiny)
     return hot
 
 

@@ -43,17 +43,19 @@ def test_dead_and_stuck_photosites_are_found_and_healthy_ones_left_alone(sensor,
     for code in (D.DEAD, D.STUCK):  # 58 of each: every one flagged (measured 100 % on the bench)
         assert (codes[burst.defects == code] > 0).all()
     # hot ones where they stand out from the plane's gain spread (the larger offsets) or the scene
-    # along their trajectory varies: 18-93 % of the simulated ones on the bench (42 % on this kind)
-    assert (codes[burst.defects == D.HOT] > 0).mean() > 0.3
+    # along their trajectory varies: 18-96 % of the simulated ones on the bench; here 59 / 85 / 85 %
+    # (38 / 72 / 79 % against the median prediction alone)
+    assert (codes[burst.defects == D.HOT] > 0).mean() > 0.5
     clean = _codes(simulate_burst(**kwargs), sensor)
     assert np.count_nonzero(clean) <= 1e-4 * clean.size  # 7.7 photosites: 0-1 measured (Z_DEFECT)
 
 
-@pytest.mark.parametrize("preset, exposure, share", [("paper", 0.75, 0.5), ("raw12", 0.075, 0.75)])
+@pytest.mark.parametrize("preset, exposure, share", [("paper", 0.75, 0.65), ("raw12", 0.075, 0.93)])
 def test_hot_photosites_the_burst_shows_plainly_are_found(preset, exposure, share):
     # offsets the burst tells from a gain by 20 of their standard errors (with the scene known):
     # the detector before the fit of gain and offset along each trajectory found 38 % (8-bit) and
-    # 65 % (RGGB, dark) of them on these bursts, this one 60 % and 81 %
+    # 65 % (RGGB, dark) of them on these bursts, with the fit 60 % and 81 %, with the fit against
+    # the nearest readings' prediction too (solve.predict) 69 % and 96 %
     sensor = PRESETS[preset]
     kwargs = dict(shape=(240, 320), n_frames=8, sensor=sensor, scene="dead-leaves", exposure=exposure, seed=2)
     burst = simulate_burst(defects=0.005, **kwargs)
@@ -81,6 +83,47 @@ def test_dead_and_stuck_photosites_in_a_black_region_are_found():
     assert found[z > 10].mean() >= 0.96
     clean = _codes(simulate_burst(**kwargs), sensor)
     assert np.count_nonzero(clean) <= 1e-4 * clean.size
+
+
+def _strokes(seed: int) -> np.ndarray:
+    """A scene of thin bright strokes (1-3 px at the 480x640 it is drawn at) on black: a page of
+    text, a night sky's trails."""
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    scene = np.zeros((480, 640), np.float32)
+    for _ in range(120):
+        start = rng.integers(0, (640, 480))
+        end = start + rng.integers(-120, 120, 2)
+        cv2.line(scene, tuple(map(int, start)), tuple(map(int, end)), float(rng.uniform(0.3, 1.0)),
+                 int(rng.integers(1, 4)))
+    return scene
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_thin_bright_strokes_on_black_are_not_defects(seed):
+    # beside strokes finer than a colour plane samples, the median prediction errs by hundreds of DN
+    # where the scene is black: such a photosite reads one value where both estimates of a healthy
+    # one's variance say it would vary, and was flagged stuck (1127 / 807 / 1104 of these 19 200,
+    # 4-6 %: over 5 % a plane is refused); the nearest readings do not confirm it (1 / 0 / 0 flagged)
+    burst = simulate_burst(shape=(120, 160), n_frames=8, sensor=RAW12, scene=_strokes(seed), exposure=0.75,
+                           seed=seed)
+    assert np.median(burst.frames) == RAW12.black_level  # mostly black
+    assert np.count_nonzero(_codes(burst, RAW12)) <= 2
+
+
+@pytest.mark.parametrize("exposure", [0.2, 0.3])
+def test_a_dark_smooth_scene_has_no_defects(exposure):
+    # 8-bit readings of 2-3 counts: most of a photosite's readings are one count and its ratios'
+    # median absolute deviation 0, so a response of 1.3 read as 6 standard errors out (5 + 0 + 6
+    # and 0 + 0 + 4 flagged over the seeds); with the rounding's scatter counted, none
+    y, x = np.mgrid[0:480, 0:640] / 480.0
+    scene = (0.02 + 0.05 * np.exp(-((x - 0.7) ** 2 + (y - 0.5) ** 2) / 0.2)).astype(np.float32)
+    sensor = PRESETS["paper"]
+    for seed in range(3):
+        burst = simulate_burst(shape=(120, 160), n_frames=8, sensor=sensor, scene=scene, exposure=exposure, seed=seed)
+        assert np.median(burst.frames) <= 3
+        assert not _codes(burst, sensor).any()
 
 
 def test_stuck_photosites_are_found_in_frames_of_different_exposures():

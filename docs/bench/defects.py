@@ -4,6 +4,8 @@
     python docs/bench/defects.py hot    # hot photosites found, by offset over (level x pixel FPN)
     python docs/bench/defects.py hotz   # ... by how well the offset could be told from a gain
     python docs/bench/defects.py deadz  # dead and stuck ones found, by how plainly they differ from a healthy one
+    python docs/bench/defects.py predict  # the error of the two predictions of the scene (solve.predict)
+    python docs/bench/defects.py photos   # healthy photosites flagged on photographs (scikit-image's)
 
 Per sensor preset, scene, exposure and frame count: the percentage of each simulated kind
 flagged (in parentheses: flagged as that kind), over two 240x320 bursts with 0.5 % defects; and
@@ -12,6 +14,7 @@ dead, stuck). About 30 s.
 """
 import sys
 import time
+from dataclasses import replace
 
 import numpy as np
 
@@ -22,6 +25,7 @@ from gainfpn_cli.sim.sensor import PRESETS
 from gainfpn_cli.sim.simulate import simulate_burst
 from gainfpn_cli.sim.truth import hot_offset_z, response_z
 from gainfpn_cli.solve import defects as D
+from gainfpn_cli.solve import predict as P
 
 
 def codes_of(b, sensor):
@@ -80,7 +84,63 @@ def hot_found(measure, edges, kinds=("hot",)):
     print(f"bins of {measure.__name__}:", edges)
 
 
-if __name__ == "__main__" and sys.argv[1:] == ["hot"]:
+def prediction_errors(preset="raw12", scene="dead-leaves", n=8, seed=0):
+    """The relative error of each prediction of :mod:`solve.predict` against the noise-free frames
+    (noise off, the gains 1: what is left is the prediction's own), per plane: the mean absolute
+    and the 90th percentile, over the photosites both predict from the frames above 5 % of the
+    plane's peak."""
+    sensor = replace(PRESETS[preset], shot_noise=False, read_noise_e=0.0, fpn_pixel=0.0)
+    b = simulate_burst(shape=(240, 320), n_frames=n, sensor=sensor, scene=scene, exposure=0.75, seed=seed)
+    warp = GlobalWarp(b.homographies)
+    for name, pick, S in plane_views(sensor.cfa, ("Y",)):
+        ideal = np.ascontiguousarray(pick(b.ideal[..., None]), np.float32)
+
+        def everywhere(t, frame):
+            return np.ones(frame.shape, bool)
+
+        median, valid, from_frames = P.scene_along(ideal, everywhere, warp.conjugate(S))
+        sharp, known = P.nearest_along(ideal, everywhere, warp.conjugate(S))
+        both = valid & from_frames & known & (ideal > 0.05 * ideal.max())
+        line = []
+        for label, x in (("median", median), ("sharper", sharp)):
+            error = np.abs(x[both] / ideal[both] - 1)
+            line.append(f"{label} {np.mean(error) * 100:.2f} % / {np.quantile(error, 0.9) * 100:.1f} %")
+        print(f"{preset} {scene} {name}: " + ", ".join(line), flush=True)
+
+
+PHOTOS = ("camera", "moon", "text", "gravel", "chelsea", "grass", "brick", "coins", "astronaut", "cell")
+
+
+def photographs(scenes=PHOTOS, seeds=(40, 41)):
+    """Healthy photosites flagged on defect-free 240x320 bursts of 8 frames rendered from photographs
+    (grey, linear: docs/bench/confidence.py's), per sensor and exposure, by scene and in all."""
+    from confidence import scene_of
+
+    for preset in ("raw12", "paper"):
+        sensor = PRESETS[preset]
+        for exposure in (0.75, 0.075):
+            flagged, kinds = {}, np.zeros(4, int)
+            for name in scenes:
+                flagged[name] = 0
+                for seed in seeds:
+                    b = simulate_burst(shape=(240, 320), n_frames=8, sensor=sensor, scene=scene_of(name),
+                                       exposure=exposure, seed=seed)
+                    codes = codes_of(b, sensor)
+                    flagged[name] += int(np.count_nonzero(codes))
+                    kinds += np.bincount(codes.ravel(), minlength=4)
+            per = 1e4 / (len(seeds) * 240 * 320)
+            worst = max(flagged, key=flagged.get)
+            print(f"{preset:6s} {exposure:5}: {flagged}; worst {worst} {flagged[worst] * per:.2f}e-4, "
+                  f"hot / dead / stuck {kinds[1:]}", flush=True)
+
+
+if __name__ == "__main__" and sys.argv[1:] == ["photos"]:
+    photographs()
+elif __name__ == "__main__" and sys.argv[1:] == ["predict"]:
+    for preset in ("raw12", "paper"):
+        for scene in ("dead-leaves", "procedural"):
+            prediction_errors(preset, scene)
+elif __name__ == "__main__" and sys.argv[1:] == ["hot"]:
     hot_found(offset_over_gain_spread, (0, 2, 4, 6, 8, 10, 15, np.inf))
 elif __name__ == "__main__" and sys.argv[1:] == ["hotz"]:
     hot_found(hot_offset_z, (0, 4, 6, 10, 20, 40, np.inf))

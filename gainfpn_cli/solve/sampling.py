@@ -141,8 +141,8 @@ def sampling(points: list[np.ndarray], fine: tuple[int, int], scale: int, apertu
 
 def compiled(function=None, *, fastmath: bool = True):
     """``function`` compiled by numba (nopython; reassociation allowed unless ``fastmath`` is False)
-    on its first call, or loaded from numba's cache: numba is imported only where the scene solver
-    runs."""
+    on its first call, or loaded from numba's cache: numba is imported only where such a function
+    runs (the scene solver, the defect search's nearest readings)."""
     if function is None:
         return lambda f: compiled(f, fastmath=fastmath)
 
