@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from gainfpn_cli.geometry.planes import plane_views
+from gainfpn_cli.geometry.resample import positions
 from gainfpn_cli.geometry.warps import GlobalWarp
 from gainfpn_cli.sim.sensor import PRESETS
 from gainfpn_cli.sim.simulate import simulate_burst
@@ -49,6 +50,28 @@ def test_a_photosite_never_predicts_itself():
     frames[:2, 20, 20] = 4000.0
     x, valid = predict.nearest_along(frames, _everywhere, warp)
     assert valid[0, 20, 20] and x[0, 20, 20] < 200  # from frames 2 and 3, not from frame 1
+
+
+class _AsMaps:
+    """A warp whose pairs are position maps ``(h, w, 2)`` (as a field or layered warp's), here those
+    of ``warp``'s homographies."""
+
+    def __init__(self, warp):
+        self.warp = warp
+
+    def pair(self, s, t, region):
+        return positions(self.warp.pair(s, t, region), region[2:]).astype(np.float32)
+
+
+def test_position_maps_predict_as_their_homographies():
+    sensor = PRESETS["raw12"]
+    burst = simulate_burst(shape=(60, 80), n_frames=6, sensor=dataclasses.replace(sensor, cfa=None), seed=3)
+    frames, warp = burst.frames.astype(np.float32), GlobalWarp(burst.homographies)
+    x, valid = predict.nearest_along(frames, _everywhere, warp)
+    x_map, valid_map = predict.nearest_along(frames, _everywhere, _AsMaps(warp))
+    assert valid.mean() > 0.8
+    # float32 positions: a tie between two frames' distances may fall the other way, nothing else
+    assert (valid_map == valid).all() and np.mean(x_map[valid] == x[valid]) > 0.999
 
 
 @pytest.mark.parametrize("preset", ["raw12", "paper"])

@@ -93,7 +93,7 @@ def nearest_along(frames, good, warp) -> tuple[np.ndarray, np.ndarray]:
             M, frame = warp.pair(t, s, region), np.ascontiguousarray(frames[s], np.float32)
             homography = M.shape == (3, 3)
             _keep_nearest(np.asarray(M if homography else np.eye(3), np.float64),
-                          np.asarray(np.empty((0, 0, 2)) if homography else M, np.float64),
+                          np.ascontiguousarray(np.empty((0, 0, 2)) if homography else M, np.float32),
                           frame, np.ascontiguousarray(good(s, frame)), distance, value)
         known = np.isfinite(distance[-1])
         x[t] = np.where(known, value.mean(axis=0), 0.0)
