@@ -238,10 +238,12 @@ def _response_scores(response, scatter, n, tested) -> tuple[float, float, np.nda
 
 
 class _Sharp(NamedTuple):
-    offsets: np.ndarray | None  # _offset_scores against the sharper prediction (None under MIN_FIT_FRAMES)
+    """What the sharper prediction tells, per photosite (:func:`_sharp_tests`)."""
+
+    offsets: np.ndarray | None  # _offset_scores against it (None under MIN_FIT_FRAMES frames)
     dim: np.ndarray  # _dark_scores against it
-    unlit: np.ndarray  # its response below DEAD_RESPONSE of its plane's, or not measured
-    lit: np.ndarray  # at the photosites asked: the median of its scene along the trajectory above the floor
+    unlit: np.ndarray  # its response under DEAD_RESPONSE of the plane's, or fewer than MIN_FRAMES predicted
+    lit: np.ndarray  # at the photosites asked: the median scene along the trajectory above the floor
 
 
 def _sharp_tests(frames, good, warp, floor: float, noise, plane_typical: float, plane_spread: float,
@@ -263,7 +265,7 @@ def _sharp_tests(frames, good, warp, floor: float, noise, plane_typical: float, 
     response, scatter, n, *_ = _responses(frames, x, usable)
     tested = n >= MIN_FRAMES
     if not tested.any():
-        return _Sharp(np.zeros(tested.shape), dim, ~seen, lit)  # (no offset: 0)
+        return _Sharp(np.zeros(tested.shape), dim, ~seen, lit)  # (no response: no offset either)
     typical, spread, _ = _robust_spread(response, tested)
     fit = frames.shape[0] >= MIN_FIT_FRAMES
     offsets = _offset_scores(frames, x, usable, typical, spread, scatter, noise) if fit else None
