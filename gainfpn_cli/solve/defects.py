@@ -184,7 +184,10 @@ def survey(frames: np.ndarray, warp, *, saturation: float | None = None,
     tested = n >= MIN_FRAMES
     if not tested.any():
         return Survey(codes, None)
-    typical, plane_spread, z = _response_scores(response, scatter, n, tested)
+    # the plane's spread, or its neighbourhood's where larger: beside an edge or a border the
+    # prediction misses, consistently over the frames, for every photosite around
+    typical, plane_spread, spread = _robust_spread(response, tested)
+    z = _scores(response, typical, spread, scatter, n, tested)
     dead = tested & (response < DEAD_RESPONSE * typical) & (highest < DEAD_CEILING * typical) & (z < -Z_DEFECT)
     whole = usable.all(axis=0) & ~dead
     noise = fit_noise(*level_and_scatter(frames, x, response, whole), n_frames)
@@ -196,12 +199,12 @@ def survey(frames: np.ndarray, warp, *, saturation: float | None = None,
     # a response's own scatter at least the rounding's: near black, where most readings of a photosite
     # are one count, their median absolute deviation can be 0
     rounding = step / np.sqrt(12) / np.maximum(level, 1e-30)
-    z = _response_scores(response, np.maximum(scatter, rounding), n, tested)[2]
+    z = _scores(response, typical, spread, np.maximum(scatter, rounding), n, tested)
     hot = (z > np.where(usable.sum(axis=0) >= MIN_FRAMES, Z_DEFECT, BORDER_Z * Z_DEFECT)) & (lowest > typical)
     if n_frames >= MIN_FIT_FRAMES:
         hot |= _offset_scores(frames, x, usable, typical, plane_spread, scatter, noise) > Z_OFFSET
     # (the stacks and planes no longer needed: the sharper prediction's in their place)
-    del x, usable, from_frames, response, scatter, lowest, highest, level, z, rounding
+    del x, usable, from_frames, response, scatter, lowest, highest, level, z, rounding, spread
     sharp = _sharp_tests(frames, good, warp, floor, noise, typical, plane_spread, stuck)
     # beside a bright edge the median's error fakes a dead response and a dim photosite's readings
     # far from its scene; the sharper prediction's, less than half of it there, seldom: each is
@@ -222,19 +225,16 @@ def survey(frames: np.ndarray, warp, *, saturation: float | None = None,
     return Survey(codes, noise.scaled(unit))
 
 
-def _response_scores(response, scatter, n, tested) -> tuple[float, float, np.ndarray]:
-    """The plane's typical response, its robust spread, and each photosite's score ``z``: its
-    response's distance from the typical over the spread (or its 5x5 neighbourhood's, where larger:
-    beside an edge or a border the prediction misses, consistently over the frames, for every
-    photosite around) and its own scatter over the frames, in quadrature."""
-    typical, plane_spread, spread = _robust_spread(response, tested)
+def _scores(response, typical: float, spread: np.ndarray, scatter, n, tested) -> np.ndarray:
+    """Each photosite's score ``z``: its response's distance from the ``typical`` one over the
+    ``spread`` (:func:`_robust_spread`'s, per photosite) and its own ``scatter`` over its ``n``
+    frames, in quadrature."""
     # the median of n ratios scatters pi/2 times as much (in variance) as their mean; a scatter
     # from a few frames can be small by chance: not below its neighbourhood's (prediction errors
     # near an edge are shared by the photosites along it)
     local = _local_median(np.where(tested, scatter, 0.0))
     own = np.pi / 2 * np.maximum(scatter, local) ** 2 / np.maximum(n, 1)
-    z = np.where(tested, (response - typical) / np.sqrt(spread**2 + own + 1e-30), 0.0)
-    return typical, plane_spread, z
+    return np.where(tested, (response - typical) / np.sqrt(spread**2 + own + 1e-30), 0.0)
 
 
 class _Sharp(NamedTuple):
