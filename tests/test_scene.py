@@ -8,6 +8,8 @@ import warnings
 import numpy as np
 import pytest
 from helpers import run_cli
+from hypothesis import given
+from hypothesis import strategies as st
 from scipy import ndimage
 
 from gainfpn_cli import metrics
@@ -23,6 +25,7 @@ from gainfpn_cli.solve.sampling import sampling
 from gainfpn_cli.solve.scene import (
     SceneOptions,
     censored_response,
+    converged,
     prepare,
     solve_scene,
 )
@@ -31,6 +34,7 @@ from gainfpn_cli.solve.scenemodel import (
     _moved,
     add_smoothness,
     fit_tile,
+    gain_information,
     noise_variance,
     smoothness_diagonal,
 )
@@ -374,3 +378,46 @@ def test_residual_excess_is_at_least_one_beside_black():
     black[16, 16] = True
     excess = scene._excess(data, probe, black)
     assert np.all(excess[14:19, 14:19] >= 1.0) and np.median(excess[:8, :8]) < 0.2
+
+
+@given(limit=st.floats(0.01, 100), share=st.floats(0.01, 0.5), ratio=st.floats(0.05, 0.7), sign=st.sampled_from([-1, 1]))
+def test_converged_is_the_limit_of_a_geometric_sequence(limit, share, ratio, sign):
+    values = [limit * (1 + sign * share * ratio**n) for n in range(3)]
+    assert converged(values) == pytest.approx(limit, rel=1e-9)
+
+
+def test_converged_takes_no_more_than_its_rate_nor_a_turn():
+    slow = [1.0 + 0.9**n for n in range(3)]  # shrinking by 0.9: extrapolated as if by 0.7
+    assert converged(slow) == pytest.approx(slow[2] + (slow[2] - slow[1]) * 0.7 / 0.3)
+    assert converged([1.0, 1.2, 1.1]) == 1.1  # not one direction: the last
+    assert converged([1.0, 1.0, 1.0]) == 1.0
+    assert converged([0.0, 0.9, 1.7]) == 3.4  # at most twice the last
+
+
+def _probe_sums(tile, stops, monkeypatch):
+    """The noise probe's tile sums (da^2 over the estimated pixels, the residuals' squares over their
+    noise variance) with its iterate taken at ``stops``."""
+    opt = tile.options
+    fit = fit_tile(tile)
+    information = gain_information(fit.weight, fit.predicted, fit.a.size)
+    unpull = np.divide(information + 1 / opt.gain_prior**2, information, out=np.ones_like(information),
+                       where=information > 0)
+    monkeypatch.setattr(scene, "PROBE_STOPS", stops)
+    da, fitted, _ = scene._noise_probe(fit, 1 + (fit.a - 1) * unpull, unpull, np.random.default_rng(1), opt)
+    use = fit.weight > 0
+    return np.sum(da[fit.est] ** 2), np.sum(fitted[use] ** 2 / fit.variance[use])
+
+
+@pytest.mark.parametrize("seed, exposure", [(1, 0.75), (2, 0.15)])
+def test_noise_probe_extrapolated_to_its_converged_sums(seed, exposure, monkeypatch):
+    # 4 fitted frames, where the probe converges slowest; measured (seeds 1-3, 75 % and 15 %): sigma_k^2
+    # from the sums 0.97-1.04x the converged's (30 iterations plainly: 0.77-0.89x)
+    burst = simulate_burst(shape=(96, 128), n_frames=5, sensor=PRESETS["paper"], scene="dead-leaves", seed=seed,
+                           exposure=exposure)
+    frames = burst.frames.astype(np.float32) - PRESETS["paper"].black_level
+    tile = prepare(dict(frames=frames, motion=burst.homographies), SceneOptions())[0]
+    moved, left = _probe_sums(tile, (400,) * 3, monkeypatch)  # converged before 400
+    for stops, near in ((scene.PROBE_STOPS, True), ((30,) * 3, False)):
+        now_moved, now_left = _probe_sums(tile, stops, monkeypatch)
+        variance = (now_moved / moved) / (now_left / left)  # as sigma_k^2 is scaled
+        assert (0.95 <= variance <= 1.05) == near, (stops, variance)

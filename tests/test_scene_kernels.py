@@ -78,3 +78,19 @@ def test_conjugate_gradients_follow_the_textbook(iterations):
     if iterations == 200:
         assert used < 200
         np.testing.assert_allclose(x, np.linalg.solve(A, b), rtol=1e-8)
+
+
+def test_conjugate_gradients_path_holds_the_iterates_at_its_stops():
+    # each stop's iterate is the solve capped there, bit for bit; stops after convergence get the solution
+    rng = np.random.default_rng(3)
+    M = rng.standard_normal((60, 60))
+    A = M @ M.T + 60 * np.eye(60)
+    b, d = rng.standard_normal(60), np.diag(A).copy()
+    path, used = scenemodel._pcg_path(lambda p: A @ p, b, d, (3, 7, 7, 12), 1e-10)
+    assert used == 12 and len(path) == 4
+    for stop, x in zip((3, 7, 7, 12), path):
+        np.testing.assert_array_equal(x, scenemodel._pcg(lambda p: A @ p, b, d, stop, 1e-10)[0])
+    path, used = scenemodel._pcg_path(lambda p: A @ p, b, d, (2, 150, 200), 1e-10)
+    assert used < 150
+    np.testing.assert_array_equal(path[1], path[2])
+    np.testing.assert_allclose(path[2], np.linalg.solve(A, b), rtol=1e-8)

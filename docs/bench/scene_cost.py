@@ -24,7 +24,7 @@ from gainfpn_cli.solve import scene
 
 def without_confidence() -> None:
     """The scene solver's tiles, in this process, without the noise probe's iterations and the gain response."""
-    scene.PROBE_ITERATIONS = 0
+    scene.PROBE_STOPS = (0, 0, 0)
     scene._gain_response = lambda fit, a, est, unpull, rng, opt: (np.ones(a.size), 0)
 
 

@@ -35,7 +35,7 @@ import numpy as np
 
 from ..geometry.resample import low_pass, window_sum
 from .result import GainResult, SceneStats, confidence_from_sigma
-from .scenemodel import fit_tile, gain_information, gauss_newton_step
+from .scenemodel import fit_tile, gain_information, gauss_newton_path, gauss_newton_step
 from .tiling import Tile, blend, checked_problem, solve_tiles, tiles_of
 
 
@@ -160,12 +160,8 @@ def _solve_tile(tile: Tile) -> tuple[np.ndarray, np.ndarray, int]:
     # the noise's own path into a: the same linear step, driven by a draw of the noise model alone
     # (seeded by the tile's place, so that any worker draws the same)
     rng = np.random.default_rng([PROBE_SEED, tile.y0, tile.x0])
-    probe = np.where(fit.weight > 0, rng.standard_normal(fit.y.size) * np.sqrt(fit.variance), 0.0)
-    ds, da, its = gauss_newton_step(fit.A, fit.weight, probe, fit.predicted, a, fit.s, opt, priors=False,
-                                    iterations=PROBE_ITERATIONS)
+    da, fitted, its = _noise_probe(fit, a, unpull, rng, opt)
     iterations += its
-    fitted = probe - np.tile(a, n_frames) * fit.A.forward(ds) - fit.predicted * np.tile(da, n_frames)
-    da = da * unpull
     # ... and the gains' own: the share of a change in a that the step gives back to a (the scene
     # takes up the rest where few readings see each scene sample, or where they are dark); k and its
     # error are divided by it, so the FPN model gets k unbiased
@@ -192,11 +188,49 @@ def _solve_tile(tile: Tile) -> tuple[np.ndarray, np.ndarray, int]:
 
 #: Seed of the noise probe of :func:`_solve_tile` (with the tile's origin).
 PROBE_SEED = 20261124
-#: Conjugate-gradient iterations of the probe's step: at the fit's 20 its da is 23 % off the
-#: converged one (11 % at 40), and sigma_k under-predicts by up to 1.6x at 4 fitted frames
-#: (240x320 dead leaves, seeds 3-5: tenths 1.13-1.64 at 20, 0.85-1.27 at 40, 0.83-1.20 at 60,
-#: 0.82-1.19 at 80)
-PROBE_ITERATIONS = 60
+#: Conjugate-gradient iterations after which the probe's tile sums are taken (:func:`_noise_probe`),
+#: the last its cap. Unconverged, the sums run low (da's squares) and high (the residuals' share of
+#: the noise): at 20 they put sigma_k^2 at 0.59-0.62x the converged on 4 fitted frames (640x480
+#: dead leaves and gravel, seed 3; 0.84x on 7), and sigma_k under-predicted by up to 1.6x (tenths
+#: 1.13-1.64, 240x320 dead leaves, seeds 3-5); extrapolated from 20, 25 and 30 they give
+#: 0.986-1.023x on 5, 8 and 16 frames, bright, dark and a photograph (60 iterations: 0.972-1.003x)
+PROBE_STOPS = (20, 25, 30)
+#: Largest ratio of successive changes taken as the sums' geometric convergence (:func:`converged`):
+#: per 5 iterations they shrink by 0.5-0.8, and on a photograph about linearly; 0.8 overshot there
+#: (1.052x), 0.7 kept every tile above within 3 %
+PROBE_RATE = 0.7
+
+
+def converged(values, rate: float = PROBE_RATE) -> float:
+    """The limit of a sequence that converges geometrically, from its last three ``values`` at evenly
+    spaced iterations (Aitken's extrapolation, the ratio of successive changes at most ``rate``): the
+    last value where they do not shrink in one direction, and never below half of it or over twice."""
+    x1, x2, x3 = values[-3:]
+    d1, d2 = x2 - x1, x3 - x2
+    if d1 == 0 or d2 / d1 <= 0:
+        return float(x3)
+    ratio = min(d2 / d1, rate)
+    return float(np.clip(x3 + d2 * ratio / (1 - ratio), x3 / 2, 2 * x3))
+
+
+def _noise_probe(fit, a, unpull, rng, opt) -> tuple[np.ndarray, np.ndarray, int]:
+    """The noise's own path into a: the last step, driven by a draw of the noise model alone. Its
+    ``da`` (with the prior's pull taken back) and what of the draw the fit leaves in the readings
+    (``fitted``), each scaled so that its sum of squares over the tile is that of the converged step,
+    extrapolated along :data:`PROBE_STOPS` (:func:`converged`); and the iterations taken."""
+    n_frames = fit.y.size // a.size
+    use = fit.weight > 0
+    probe = np.where(use, rng.standard_normal(fit.y.size) * np.sqrt(fit.variance), 0.0)
+    path, its = gauss_newton_path(fit.A, fit.weight, probe, fit.predicted, a, fit.s, opt, priors=False,
+                                  stops=PROBE_STOPS)
+    moved, left = [], []
+    for ds, da in path:
+        fitted = probe - np.tile(a, n_frames) * fit.A.forward(ds) - fit.predicted * np.tile(da, n_frames)
+        moved.append(float(np.sum((da * unpull)[fit.est] ** 2)))
+        left.append(float(np.sum(fitted[use] ** 2 / fit.variance[use])))
+    scale_da = np.sqrt(converged(moved) / moved[-1]) if moved[-1] > 0 else 1.0
+    scale_fitted = np.sqrt(converged(left) / left[-1]) if left[-1] > 0 else 1.0
+    return da * unpull * scale_da, fitted * scale_fitted, its
 
 
 #: Least share of a gain change the step is taken to give back (:func:`_gain_response`): below it

@@ -245,6 +245,15 @@ def gauss_newton_step(A: Sampling, weight, residual, predicted, a, s, opt, *, pr
     the conjugate-gradient iterations it took. ``priors=False``: the step's response to ``residual``
     alone (the priors' pull towards their centres left out, their weight kept). ``iterations``:
     the conjugate-gradient cap if not ``opt.cg_iterations``."""
+    steps, its = gauss_newton_path(A, weight, residual, predicted, a, s, opt, priors=priors,
+                                   stops=(opt.cg_iterations if iterations is None else iterations,))
+    return *steps[-1], its
+
+
+def gauss_newton_path(A: Sampling, weight, residual, predicted, a, s, opt, *, priors: bool, stops: tuple[int, ...]):
+    """:func:`gauss_newton_step` as its conjugate gradients go: the step ``(ds, da)`` after each of
+    ``stops`` iterations (increasing; the last is the cap, and a solve that converged before a stop
+    gives its final step there), and the iterations taken."""
     n = a.size
     repeat = residual.size // n
     at = np.tile(a, repeat)
@@ -267,10 +276,10 @@ def gauss_newton_step(A: Sampling, weight, residual, predicted, a, s, opt, *, pr
 
     rhs = A.back(-coupling * np.tile(grad_a * inverse_haa, repeat), grad_s)
     diagonal = A.back_squared(data_ss) + lam * smoothness_diagonal(A.fine)
-    ds, its = _pcg(schur, rhs, np.maximum(diagonal, 1e-12 * max(diagonal.max(), 1e-300)),
-                   opt.cg_iterations if iterations is None else iterations, opt.cg_rtol)
-    da = (grad_a - (coupling * A.forward(ds)).reshape(repeat, n).sum(axis=0)) * inverse_haa
-    return ds, da, its
+    path, its = _pcg_path(schur, rhs, np.maximum(diagonal, 1e-12 * max(diagonal.max(), 1e-300)), stops,
+                          opt.cg_rtol)
+    return [(ds, (grad_a - (coupling * A.forward(ds)).reshape(repeat, n).sum(axis=0)) * inverse_haa)
+            for ds in path], its
 
 
 @compiled
@@ -294,20 +303,29 @@ def _eliminated(u, coupling, data_ss, inverse_haa, z):
 
 def _pcg(operator, rhs, diagonal, iterations: int, rtol: float):
     """Jacobi-preconditioned conjugate gradients from 0: the solution and the iterations used."""
+    path, its = _pcg_path(operator, rhs, diagonal, (iterations,), rtol)
+    return path[-1], its
+
+
+def _pcg_path(operator, rhs, diagonal, stops: tuple[int, ...], rtol: float):
+    """:func:`_pcg` up to ``stops[-1]`` iterations: the iterate after each of ``stops`` (the final one
+    for those after it converged) and the iterations used."""
     x = np.zeros_like(rhs)
     r = rhs.copy()
     z = r / diagonal
     p = z.copy()
     rz = r @ z
     stop = rtol * np.sqrt(r @ r)
-    for i in range(iterations):
+    path = []
+    for i in range(stops[-1]):
         q = operator(p)
         rr, rz_next = _cg_update(rz / (p @ q), p, q, diagonal, x, r, z)
         if np.sqrt(rr) <= stop:
-            return x, i + 1
+            return path + [x] * (len(stops) - len(path)), i + 1
+        path.extend(x.copy() for _ in range(stops[:-1].count(i + 1)))
         _cg_direction(z, rz_next / rz, p)
         rz = rz_next
-    return x, iterations
+    return path + [x] * (len(stops) - len(path)), stops[-1]
 
 
 @compiled
