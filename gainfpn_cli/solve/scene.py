@@ -94,7 +94,7 @@ class SceneOptions:
     robust_scale: float | None = 3.0
     gauge_sigma: float = 32.0
     tile: int = 256
-    halo: int = 16
+    halo: int = 8
     gain_range: tuple[float, float] = (0.5, 2.0)
     refine_frames: bool = True
     # up to 4 more steps while frames still move: 1 px of distortion under a forced homography
