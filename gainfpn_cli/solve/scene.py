@@ -224,7 +224,7 @@ def _noise_probe(fit, a, unpull, rng, opt) -> tuple[np.ndarray, np.ndarray, int]
     path, its = gauss_newton_path(fit.A, fit.weight, probe, fit.predicted, a, fit.s, opt, priors=False,
                                   stops=PROBE_STOPS)
     moved, left = [], []
-    for ds, da in path:
+    for ds, da in path:  # da and fitted are left at the last stop's
         fitted = probe - np.tile(a, n_frames) * fit.A.forward(ds) - fit.predicted * np.tile(da, n_frames)
         moved.append(float(np.sum((da * unpull)[fit.est] ** 2)))
         left.append(float(np.sum(fitted[use] ** 2 / fit.variance[use])))
