@@ -62,7 +62,7 @@ def test_conjugate_gradients_follow_the_textbook(iterations):
     M = rng.standard_normal((60, 60))
     A = M @ M.T + 60 * np.eye(60)
     b, d = rng.standard_normal(60), np.diag(A).copy()
-    x, used = scenemodel._pcg(lambda p: A @ p, b, d, iterations, 1e-10)
+    (x,), used = scenemodel._pcg_path(lambda p: A @ p, b, d, (iterations,), 1e-10)
     ref, r = np.zeros(60), b.copy()
     z = r / d
     p, rz = z.copy(), r @ z
@@ -89,7 +89,7 @@ def test_conjugate_gradients_path_holds_the_iterates_at_its_stops():
     path, used = scenemodel._pcg_path(lambda p: A @ p, b, d, (3, 7, 7, 12), 1e-10)
     assert used == 12 and len(path) == 4
     for stop, x in zip((3, 7, 7, 12), path):
-        np.testing.assert_array_equal(x, scenemodel._pcg(lambda p: A @ p, b, d, stop, 1e-10)[0])
+        np.testing.assert_array_equal(x, scenemodel._pcg_path(lambda p: A @ p, b, d, (stop,), 1e-10)[0][0])
     path, used = scenemodel._pcg_path(lambda p: A @ p, b, d, (2, 150, 200), 1e-10)
     assert used < 150
     np.testing.assert_array_equal(path[1], path[2])

@@ -224,8 +224,8 @@ def _noise_probe(fit, a, unpull, rng, opt) -> tuple[np.ndarray, np.ndarray, int]
     path, its = gauss_newton_path(fit.A, fit.weight, probe, fit.predicted, a, fit.s, opt, priors=False,
                                   stops=PROBE_STOPS)
     moved, left = [], []
-    for ds, da in path:  # da and fitted are left at the last stop's
-        fitted = probe - np.tile(a, n_frames) * fit.A.forward(ds) - fit.predicted * np.tile(da, n_frames)
+    for _, da, seen in path:  # da and fitted are left at the last stop's
+        fitted = probe - np.tile(a, n_frames) * seen - fit.predicted * np.tile(da, n_frames)
         moved.append(float(np.sum((da * unpull)[fit.est] ** 2)))
         left.append(float(np.sum(fitted[use] ** 2 / fit.variance[use])))
     scale_da = np.sqrt(converged(moved) / moved[-1]) if moved[-1] > 0 else 1.0

@@ -247,13 +247,15 @@ def gauss_newton_step(A: Sampling, weight, residual, predicted, a, s, opt, *, pr
     the conjugate-gradient cap if not ``opt.cg_iterations``."""
     steps, its = gauss_newton_path(A, weight, residual, predicted, a, s, opt, priors=priors,
                                    stops=(opt.cg_iterations if iterations is None else iterations,))
-    return *steps[-1], its
+    ds, da, _ = steps[-1]
+    return ds, da, its
 
 
 def gauss_newton_path(A: Sampling, weight, residual, predicted, a, s, opt, *, priors: bool, stops: tuple[int, ...]):
-    """:func:`gauss_newton_step` as its conjugate gradients go: the step ``(ds, da)`` after each of
-    ``stops`` iterations (increasing; the last is the cap, and a solve that converged before a stop
-    gives its final step there), and the iterations taken."""
+    """:func:`gauss_newton_step` as its conjugate gradients go: the step ``(ds, da, A ds)`` (the last:
+    the change of the readings' scene) after each of ``stops`` iterations (increasing; the last is the
+    cap, and a solve that converged before a stop gives its final step there), and the iterations
+    taken."""
     n = a.size
     repeat = residual.size // n
     at = np.tile(a, repeat)
@@ -278,8 +280,11 @@ def gauss_newton_path(A: Sampling, weight, residual, predicted, a, s, opt, *, pr
     diagonal = A.back_squared(data_ss) + lam * smoothness_diagonal(A.fine)
     path, its = _pcg_path(schur, rhs, np.maximum(diagonal, 1e-12 * max(diagonal.max(), 1e-300)), stops,
                           opt.cg_rtol)
-    return [(ds, (grad_a - (coupling * A.forward(ds)).reshape(repeat, n).sum(axis=0)) * inverse_haa)
-            for ds in path], its
+    steps = []
+    for ds in path:
+        seen = A.forward(ds)
+        steps.append((ds, (grad_a - (coupling * seen).reshape(repeat, n).sum(axis=0)) * inverse_haa, seen))
+    return steps, its
 
 
 @compiled
@@ -301,15 +306,9 @@ def _eliminated(u, coupling, data_ss, inverse_haa, z):
             z[i] = data_ss[i] * u[i] - coupling[i] * shared[p]
 
 
-def _pcg(operator, rhs, diagonal, iterations: int, rtol: float):
-    """Jacobi-preconditioned conjugate gradients from 0: the solution and the iterations used."""
-    path, its = _pcg_path(operator, rhs, diagonal, (iterations,), rtol)
-    return path[-1], its
-
-
 def _pcg_path(operator, rhs, diagonal, stops: tuple[int, ...], rtol: float):
-    """:func:`_pcg` up to ``stops[-1]`` iterations: the iterate after each of ``stops`` (the final one
-    for those after it converged) and the iterations used."""
+    """Jacobi-preconditioned conjugate gradients from 0, up to ``stops[-1]`` iterations: the iterate
+    after each of ``stops`` (the final one for those after it converged) and the iterations used."""
     x = np.zeros_like(rhs)
     r = rhs.copy()
     z = r / diagonal
