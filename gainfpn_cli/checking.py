@@ -37,9 +37,10 @@ def check(burst, frames, excluded, exposures, n_fit, in_frame, solver: solving.S
     def look(side: int, names) -> dict:
         """The check of the grids ``names`` on their central ``side`` px."""
         regions = {name: r for name, r in solving.central(burst, frames, solver, side).items() if name in names}
-        k_check, confidence_check, _, _ = solving.solve_planes(
+        fitted = solving.solve_planes(
             burst, frames, excluded, exposures, slice(1, n_fit), in_frame, solver, progress, regions=regions,
             models={name: p.fpn_model for name, p in reports.items()}, calibrations=calibrations)
+        k_check, confidence_check = fitted.k, fitted.confidence
         return holdout_checks(frames, excluded, exposures, in_frame, k_check,
                               grids=[grid for grid in grids if grid.name in names], saturation=burst.saturation,
                               regions=regions, disagreement=disagreement(k_check, confidence_check, k, confidence,

@@ -12,7 +12,7 @@ import time
 
 import numpy as np
 
-from . import __version__, checking, darkness, defective, solving
+from . import __version__, checking, choosing, darkness, defective, solving
 from .burst import Estimate, LoadedBurst, Progress
 from .config import Config, config_dict
 from .errors import EstimationError, InputError, TrackingError
@@ -100,6 +100,7 @@ def estimate(burst: LoadedBurst, cfg: Config, *, progress: Progress | None = Non
     from .parallel import single_threaded_math
 
     solver = solving.Solver.from_config(cfg.solver, mosaic=burst.cfa is not None, executor=executor)
+    solver = dataclasses.replace(solver, defects=cfg.input.defects)
     with single_threaded_math():
         return _estimate(burst, cfg, solver, progress)
 
@@ -156,7 +157,7 @@ def _estimate(burst: LoadedBurst, cfg: Config, solver: solving.Solver, progress:
     with defective.repaired(frames, codes, burst.cfa, burst.channels):
         n_fit = len(fit_frames)
         t0 = time.perf_counter()
-        solver, choice = solving.choose(burst, frames, excluded, exposures, slice(0, n_fit), in_frame, solver)
+        solver, choice = choosing.choose(burst, frames, excluded, exposures, slice(0, n_fit), in_frame, solver)
         chosen_s = time.perf_counter() - t0
         fit = _Fit(motion, in_frame, excluded, moving)
         held_out = burst.paths[order[-1]].name if holdout else None
@@ -167,9 +168,9 @@ def _estimate(burst: LoadedBurst, cfg: Config, solver: solving.Solver, progress:
             # solver's) at all: on data that weak, with few frames, the scene solver's sigma_k is not calibrated
             confirmed = not tried[0].failed
             fpn = _pixel_fpn(tried[0].reports)
-            errors = {t.solver.method: solving.expected_error(t.confidence, frames[0], fpn) for t in tried}
+            errors = {t.solver.method: choosing.expected_error(t.confidence, frames[0], fpn) for t in tried}
             solved = min(tried, key=lambda t: errors[t.solver.method]) if confirmed else tried[0]
-            choice = solving.tried(choice, {t.solver.method: t.holdout.residual_ratio for t in tried}, errors,
+            choice = choosing.tried(choice, {t.solver.method: t.holdout.residual_ratio for t in tried}, errors,
                                    solved.solver.method, confirmed)
         else:
             solved = _solve(burst, frames, exposures, n_fit, fit, solver, cfg, names, S_motion, progress, held_out)
@@ -185,6 +186,7 @@ def _estimate(burst: LoadedBurst, cfg: Config, solver: solving.Solver, progress:
             if solved.failed:
                 warnings.append(checking.rejection(holdout_report, solved.failed))
     if codes is not None:  # no gain is known there; corrected frames repair them (output.repair)
+        defective.add_hot(codes, solved.hot)  # those the scene model shows
         defective.leave_out(k, confidence, codes, burst.cfa, burst.channels)
     in_frame_pixels = np.stack([S_motion @ H @ np.linalg.inv(S_motion) for H in motion.homographies])
     solving.lost_band_counted(burst, frames, in_frame_pixels, slice(0, n_fit), k, confidence, plane_reports, solver)
@@ -248,6 +250,7 @@ class _Solved:
     failed: list
     solve_s: float
     holdout_s: float
+    hot: np.ndarray  # photosites the scene model shows hot (solving.solve_planes)
 
 
 def _solve(burst, frames, exposures, n_fit: int, fit: _Fit, solver, cfg: Config, names, S_motion, progress,
@@ -257,11 +260,10 @@ def _solve(burst, frames, exposures, n_fit: int, fit: _Fit, solver, cfg: Config,
     unchecked); the rejected grids written as k = 1, confidence 0."""
     t0 = time.perf_counter()
     motion, in_frame, excluded, moving = fit.motion, fit.in_frame, fit.excluded, fit.moving
-    k, confidence, plane_reports, calibrations = solving.solve_planes(
-        burst, frames, excluded, exposures, slice(0, n_fit), in_frame, solver, progress,
-        split=cfg.motion.refine_rounds == 0)
+    planes = solving.solve_planes(burst, frames, excluded, exposures, slice(0, n_fit), in_frame, solver, progress,
+                                  split=cfg.motion.refine_rounds == 0)
     for round_ in range(1, cfg.motion.refine_rounds + 1):
-        corrected, _ = motion_frames(frames * (k / np.float32(power_of_two_scale(frames[0])))[None], burst.cfa)
+        corrected, _ = motion_frames(frames * (planes.k / np.float32(power_of_two_scale(frames[0])))[None], burst.cfa)
         # the model is chosen again: on frames without their gain pattern the choice can change (a forced
         # "layers" would also lose the base model auto chose for it)
         ignore = reference_cells(excluded, corrected.shape[1:], burst.cfa)  # no corner on what the round masked
@@ -273,19 +275,19 @@ def _solve(burst, frames, exposures, n_fit: int, fit: _Fit, solver, cfg: Config,
         in_frame = motion.warp.conjugate(np.linalg.inv(S_motion))
         excluded, moving = _moving(frames, corrected, motion.warp, burst.cfa, cfg, exposures)
         del corrected
-        k, confidence, plane_reports, calibrations = solving.solve_planes(
-            burst, frames, excluded, exposures, slice(0, n_fit), in_frame, solver, progress,
-            split=round_ == cfg.motion.refine_rounds)  # measured once, on the final fit
+        planes = solving.solve_planes(burst, frames, excluded, exposures, slice(0, n_fit), in_frame, solver,
+                                      progress, split=round_ == cfg.motion.refine_rounds)  # measured on the final fit
     solve_s = time.perf_counter() - t0
+    k, confidence, plane_reports = planes.k, planes.confidence, planes.reports
     holdout_report, failed = None, []
     if held_out is not None:
         holdout_report, failed = checking.check(burst, frames, excluded, exposures, n_fit, in_frame, solver,
-                                               plane_reports, calibrations, progress, held_out, k, confidence)
+                                               plane_reports, planes.calibrations, progress, held_out, k, confidence)
         for grid in failed:
             grid.scatter(k, np.ones(grid.shape, np.float32))
             grid.scatter(confidence, np.zeros(grid.shape, np.float32))
     return _Solved(solver, k, confidence, plane_reports, _Fit(motion, in_frame, excluded, moving), holdout_report,
-                   failed, solve_s, time.perf_counter() - t0 - solve_s)
+                   failed, solve_s, time.perf_counter() - t0 - solve_s, planes.hot)
 
 
 def _pixel_fpn(reports: dict) -> float:

@@ -1,5 +1,6 @@
-"""Every plane of a burst solved: the solver chosen by the config, the FPN model and its calibration
-on two halves of the frames, and the regions the hold-out check (:mod:`checking`) fits again.
+"""Every plane of a burst solved by the solver the config names (:mod:`choosing` resolves ``auto``):
+the FPN model and its calibration on two halves of the frames, the hot photosites the scene model
+shows left out, and the regions the hold-out check (:mod:`checking`) fits again.
 
 :mod:`pipeline` runs motion and hands the frames, the masks and the warps here.
 """
@@ -13,14 +14,14 @@ import numpy as np
 
 from .burst import LoadedBurst
 from .darkness import noise_bounded, too_dark
+from .defective import offset_shown
 from .errors import EstimationError
 from .geometry.planes import plane_views, solve_grids
 from .geometry.resample import positions as warp_positions
 from .geometry.resample import window_sum
-from .report import PlaneReport, SolverChoice
+from .report import PlaneReport
 from .solve import bootstrap
 from .solve.accurate import AccurateOptions, comparison_pairs, solve_accurate, solve_accurate_many
-from .solve.aliasing import aliasing
 from .solve.band import gauge_share, lost_share, shared_band, shifts_at_centre
 from .solve.blocks import solve_paper
 from .solve.fpnmodel import measure, pooled_priors, select_model
@@ -51,6 +52,7 @@ class Solver:
     executor: object = None
     floors: dict | None = None  # plane name -> level (DN) at or below which a photosite is not solved
     noise: dict | None = None  # plane name -> solve.noise.NoiseModel of its readings (the defect search's)
+    defects: bool = False  # photosites the scene model shows hot are left out (defective.offset_shown)
 
     @classmethod
     def from_config(cls, s, *, mosaic: bool, executor=None) -> "Solver":
@@ -73,102 +75,6 @@ class Solver:
 
 #: The solvers whose confidence is ``1 / (1 + (sigma_k / 1 %)^2)`` with a predicted sigma_k.
 CALIBRATED_METHODS = ("accurate", "scene")
-
-
-#: ``solver.method: auto`` models the latent scene (the scene method) where the pairwise prediction
-#: error exceeds the noise's by this fraction or more (:mod:`solve.aliasing`). Measured on 640x480x8
-#: paper bursts (docs/method.md section 8c): dead leaves 0.24 (scene 1.51x the bound, accurate
-#: 2.15x); procedural 0.013, camera -0.05, brick -0.05, where the accurate method is as good or better.
-ALIASED = 0.1
-#: ... with this many frames fitted or more: a latent scene at twice the pixel pitch takes 4
-#: readings' worth of information per pixel, ``sqrt(T / (T - 4))`` in sigma_k (1.53 at 7 frames:
-#: an 8-frame burst with one held out, where the figures above were measured).
-SCENE_MIN_FRAMES = 7
-#: With fewer, from this many, both solvers are run on an aliased burst and the one expected to err less
-#: (:func:`expected_error`) is kept: the scene's noise costs more than the aliasing on dark bursts.
-#: Measured on 240x320 paper dead leaves of 5 / 6 frames (4 / 5 fitted, seeds 3-5 / 3-4): at 75 %
-#: exposure the scene solver's MSE ratio on an unseen frame is 1.6-1.9x the accurate one's; at 15 %
-#: 0.90-0.97x; the expected error ranks them as the truth in all 10, the hold-out ratio in 9 (method.md 8c).
-SCENE_TRIAL_FRAMES = 4
-
-
-def choose(burst, frames, excluded, exposures, used: slice, in_frame,
-           solver: "Solver") -> tuple["Solver", SolverChoice]:
-    """The solver ``solver.method: auto`` resolves to for this burst, and why; any other method as it is."""
-    if solver.method != "auto":
-        return solver, SolverChoice(solver.method, "set by solver.method")
-    choice = _auto(burst, frames, excluded, exposures, used, in_frame, solver)
-    return dataclasses.replace(solver, method=choice.method), choice
-
-
-def _auto(burst, frames, excluded, exposures, used: slice, in_frame, solver: "Solver") -> SolverChoice:
-    fitted = len(range(len(frames))[used])
-    if burst.cfa is not None:
-        return SolverChoice("accurate", "a CFA mosaic: each colour's latent scene would be sampled at the photosite "
-                            "pitch, which a colour plane itself sees only every other photosite (still aliased), so "
-                            "the pairwise form is used")
-    if fitted < SCENE_TRIAL_FRAMES:
-        return SolverChoice("accurate", f"{fitted} frames fitted: too few for a latent scene at twice the pixel "
-                                        f"pitch (at least {SCENE_TRIAL_FRAMES})")
-    measured = _most_aliased(burst, frames, excluded, exposures, used, in_frame, solver)
-    if measured is None:
-        return SolverChoice("accurate", "the aliasing could not be measured (too few pixels seen by enough frames), "
-                                        "so the pairwise form is used")
-    method, verdict = ("scene", "aliased") if measured >= ALIASED else ("accurate", "not aliased")
-    reason = (f"{verdict}: predicting one frame from another by interpolation leaves {100 * (1 + measured):.0f} % "
-              f"of the error that noise and gain FPN explain (the scene model from {100 * (1 + ALIASED):.0f} %)")
-    if method == "scene" and fitted < SCENE_MIN_FRAMES:
-        return SolverChoice("accurate", f"{reason}; with {fitted} frames fitted (fewer than {SCENE_MIN_FRAMES}) the "
-                                        "latent scene's noise can cost more than the aliasing, so both solvers are "
-                                        "run and the one expected to err less is kept where the hold-out frame "
-                                        "confirms the accurate one", measured,
-                            ("accurate", "scene"))
-    return SolverChoice(method, reason, measured)
-
-
-def tried(choice: SolverChoice, ratios: dict, errors: dict, method: str, confirmed: bool) -> SolverChoice:
-    """``choice`` (whose ``tried`` methods were run, the accurate one first) with the method kept, each
-    method's hold-out residual ratio (``ratios``, method -> ratio) and expected error (``errors``, method ->
-    :func:`expected_error`), and whether the check ``confirmed`` the accurate solver's map, in its reason."""
-    told = ", ".join(f"{m} {r:.3f}" for m, r in ratios.items())
-    expected = ", ".join(f"{m} {100 * e:.2f} %" for m, e in errors.items())
-    why = "" if confirmed else (" (the check does not confirm the accurate solver's map: on data this weak the "
-                                "scene solver's sigma_k is not calibrated with few frames)")
-    return dataclasses.replace(choice, method=method, reason=f"{choice.reason}: residual ratio {told}; expected "
-                                                            f"error {expected}; {method} kept{why}")
-
-
-def expected_error(confidence: np.ndarray, level: np.ndarray, fpn: float) -> float:
-    """The RMS error a written map is expected to leave in a frame at ``level`` (per pixel, the
-    frame's shape), weighted as the frame's squared error is (by ``level^2``): its ``sigma_k`` where it
-    has a gain, the input pixel FPN ``fpn`` where it writes k = 1.
-
-    Which of two calibrated maps to keep: on 21 240x320 paper bursts of 5-6 frames (dead leaves at
-    75 % and 15 % exposure, seeds 3-5 and 7; photographs at 40 % and 7.5 % of full scale) the lower
-    kept the map of the better MSE ratio on an unseen frame in 20 (the miss cost 4 %); the lower
-    hold-out ratio in 17 (dark dead leaves: 7 and 11 %; docs/method.md section 8c)."""
-    sigma = np.where(confidence > 0, sigma_from_confidence(np.where(confidence > 0, confidence, 1)), fpn)
-    weight = np.where(np.isfinite(level) & (level > 0), np.asarray(level, np.float64) ** 2, 0.0)
-    total = float(weight.sum())
-    return float(np.sqrt(np.sum(weight * sigma.astype(np.float64) ** 2) / total)) if total > 0 else float("inf")
-
-
-def _most_aliased(burst, frames, excluded, exposures, used: slice, in_frame, solver: "Solver") -> float | None:
-    """The largest aliasing excess (:func:`solve.aliasing.aliasing`) over the planes' central regions, of
-    the frames ``used``; None if no plane's could be measured."""
-    fit = frames[used]  # a slice: a view
-    left_out = None if excluded is None else np.broadcast_to(excluded[used, ..., None], fit.shape)  # every channel
-    regions = central(burst, frames, solver)
-    motion = in_frame.select(range(len(frames))[used])
-    measured = []
-    for grid in grids_of(burst, frames, "accurate"):
-        plane = grid.gather(fit)
-        good = usable(plane, burst.saturation, None if left_out is None else grid.gather(left_out))
-        excess = aliasing(plane, motion.conjugate(grid.S), exposures=exposures[used], good=good,
-                          region=regions[grid.name]).excess
-        if excess is not None:
-            measured.append(excess)
-    return max(measured, default=None)
 
 
 def grids_of(burst: LoadedBurst, frames: np.ndarray, method: str) -> list:
@@ -212,11 +118,24 @@ def lost_band_counted(burst: LoadedBurst, frames: np.ndarray, homographies: np.n
                 plane[...] = np.where(plane > 0, confidence_from_sigma(np.sqrt(sigma**2 + band)), 0)
 
 
+@dataclass(frozen=True)
+class Planes:
+    """Every plane's k and confidence (frame-shaped) from :func:`solve_planes`, each plane's report and
+    calibration (plane name -> :class:`solve.halves.Calibration` or None), and the photosites the
+    scene model shows hot (``Solver.defects``; k = 1, confidence 0 there)."""
+
+    k: np.ndarray
+    confidence: np.ndarray
+    reports: dict
+    calibrations: dict
+    hot: np.ndarray
+
+
 def solve_planes(burst, frames, excluded, exposures, used: slice, in_frame, solver: Solver, progress, *,
                   regions: dict | None = None, models: dict | None = None, split: bool = False,
-                  calibrations: dict | None = None):
-    """k and confidence of every plane from the frames ``used``, with the FPN model and the gauge,
-    and each plane's report and calibration (:class:`solve.halves.Calibration`, or None).
+                  calibrations: dict | None = None) -> Planes:
+    """k and confidence of every plane from the frames ``used``, with the FPN model and the gauge, and
+    what goes with them (:class:`Planes`).
 
     ``regions`` (grid name -> (rows, columns) slices) solves only there, and only the grids it names
     (k = 1 and confidence 0 elsewhere); ``models`` (plane name -> FPN model) forces each plane's model;
@@ -226,8 +145,8 @@ def solve_planes(burst, frames, excluded, exposures, used: slice, in_frame, solv
     :func:`bootstrapped`; the scene solver's sigma_k is measured by its noise probe, and halves of a
     burst are too few frames for its latent scene), and ``calibrations`` (plane name -> Calibration)
     gives them as measured before."""
-    k, confidence, solved = solve_raw(burst, frames, excluded, exposures, used, in_frame, solver, progress,
-                                      regions=regions)
+    k, confidence, solved, hot = solve_raw(burst, frames, excluded, exposures, used, in_frame, solver, progress,
+                                           regions=regions)
     if solver.method == "accurate":  # the scene solver counts readings at black itself (docs/method.md 8b)
         noise_bounded(burst, frames[used], confidence, solver.noise)
     halves = None
@@ -269,7 +188,7 @@ def solve_planes(burst, frames, excluded, exposures, used: slice, in_frame, solv
         pick(k)[...] = result.k
         pick(confidence)[...] = result.confidence
         reports[name], calibrated[name] = report, calibration
-    return k, confidence, reports, calibrated
+    return Planes(k, confidence, reports, calibrated, hot)
 
 
 #: Fewest frames :func:`solve_planes` splits into halves to measure sigma_k and the pixel FPN: halves
@@ -330,8 +249,9 @@ BOOTSTRAP_MARGIN = 2
 
 def solve_raw(burst, frames, excluded, exposures, used: slice, in_frame, solver: Solver, progress, *,
               regions: dict | None = None):
-    """Every grid's k and confidence as the solver gives them (no FPN model), frame-shaped, and each
-    plane's report; ``regions`` as for :func:`solve_planes`."""
+    """Every grid's k and confidence as the solver gives them (no FPN model), frame-shaped, each
+    plane's report, and the photosites the scene model shows hot (``solver.defects``); ``regions``
+    as for :func:`solve_planes`."""
     return solve_raws(burst, frames, excluded, exposures, [used], in_frame, solver, progress, regions=regions)[0]
 
 
@@ -351,16 +271,19 @@ def solve_raws(burst, frames, excluded, exposures, useds, in_frame, solver: Solv
     else:
         results = [solve_grid(f, x, m, burst.saturation, solver, progress, grid, exposures=e)
                    for _, grid, (f, x, m, e) in jobs]
-    out = [(np.ones(frames.shape[1:], np.float32), np.zeros(frames.shape[1:], np.float32), {}) for _ in useds]
+    out = [(np.ones(frames.shape[1:], np.float32), np.zeros(frames.shape[1:], np.float32), {},
+            np.zeros(frames.shape[1:], bool)) for _ in useds]
     for (i, grid, _), result in zip(jobs, results):
-        k, confidence, solved = out[i]
-        grid_k, grid_confidence = result.k, result.confidence
-        if regions is not None:
-            rows, columns = regions[grid.name]
-            grid_k, grid_confidence = np.ones(grid.shape, np.float32), np.zeros(grid.shape, np.float32)
-            grid_k[rows, columns], grid_confidence[rows, columns] = result.k, result.confidence
-        grid.scatter(k, grid_k)
-        grid.scatter(confidence, grid_confidence)
+        k, confidence, solved, hot = out[i]
+        grid_hot = np.zeros(result.k.shape, bool)
+        if solver.defects and result.offsets is not None and abs(grid.S[0, 0]) == 1:  # not a CFA colour's
+            grid_hot = offset_shown(result.offsets)
+        parts = (np.where(grid_hot, 1, result.k), np.where(grid_hot, 0, result.confidence), grid_hot)
+        for plane, part, elsewhere in zip((k, confidence, hot), parts, (1, 0, False)):
+            if regions is not None:  # the region's, and k = 1, confidence 0 elsewhere
+                part, region = np.full(grid.shape, elsewhere, part.dtype), part
+                part[regions[grid.name]] = region
+            grid.scatter(plane, part)
         solved.update({name: PlaneReport(solver.method, grid.name, result.stats) for name in grid.positions})
     return out
 

@@ -13,7 +13,7 @@ from gainfpn_cli.geometry.warps import GlobalWarp
 from gainfpn_cli.sim.sensor import PRESETS
 from gainfpn_cli.sim.simulate import simulate_burst
 from gainfpn_cli.solve.aliasing import aliasing, cubic_weights, noise_gain
-from gainfpn_cli.solving import ALIASED, expected_error
+from gainfpn_cli.choosing import ALIASED, expected_error
 
 
 @settings(max_examples=30, deadline=None)

@@ -102,10 +102,10 @@ def test_a_plane_the_check_rejects_is_written_as_k_1_and_the_others_are_kept(mon
     solve = solving.solve_raw
 
     def spoil_red(*args, **kwargs):
-        k, confidence, solved = solve(*args, **kwargs)
+        k, confidence, solved, hot = solve(*args, **kwargs)
         red = k[0::2, 0::2]
         red *= 1 + 0.1 * np.random.default_rng(0).standard_normal(red.shape).astype(np.float32)
-        return k, confidence, solved
+        return k, confidence, solved, hot
 
     monkeypatch.setattr(solving, "solve_raw", spoil_red)
     saturation = PRESETS["raw12"].white_level - PRESETS["raw12"].black_level

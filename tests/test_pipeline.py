@@ -91,7 +91,8 @@ def test_holdout_rejects_an_estimate_that_does_not_help(exr_burst, monkeypatch):
 
     def harmful(burst_, frames, excluded, exposures, used, H, cfg_, progress, **kwargs):  # the check's fit too
         k = 1 + 0.1 * np.random.default_rng(0).standard_normal(frames.shape[1:])
-        return k, np.ones(frames.shape[1:]), {"Y": PlaneReport("harmful", "Y", PaperStats(1, 0, 0, 0, 0, 0))}, {}
+        report = {"Y": PlaneReport("harmful", "Y", PaperStats(1, 0, 0, 0, 0, 0))}
+        return solving.Planes(k, np.ones(frames.shape[1:]), report, {}, np.zeros(frames.shape[1:], bool))
 
     monkeypatch.setattr(solving, "solve_planes", harmful)
     result = estimate(burst, cfg)

@@ -4,6 +4,7 @@ data follow the model, and its error against the pairwise solver and the noise b
 import dataclasses
 import json
 import warnings
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -26,6 +27,7 @@ from gainfpn_cli.solve.scene import (
     SceneOptions,
     censored_response,
     converged,
+    offset_scores,
     prepare,
     solve_scene,
 )
@@ -329,10 +331,13 @@ def test_sigma_k_is_inf_without_a_warning_where_a_is_not_estimated():
     size = n_frames * shape[0] * shape[1]
     est = np.ones(shape, bool)
     est[4:7, 4:7] = False
+    fit = SimpleNamespace(residual=np.zeros(size), weight=np.ones(size), variance=np.ones(size),
+                          a=np.ones(est.size))
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        sigma = scene._sigma(np.zeros(size), rng.standard_normal(size), rng.standard_normal(est.size), np.ones(size),
-                             np.ones(size), np.ones(est.size), est, n_frames, np.zeros(shape, bool))
+        actual, expected = scene._residual_sums(fit, rng.standard_normal(size), shape)
+        excess = scene._excess(actual, expected, np.zeros(shape, bool))
+        sigma = scene._sigma(rng.standard_normal(est.size), excess, np.ones(est.size), est)
     assert np.all(np.isinf(sigma[~est]))
     assert np.all(np.isfinite(sigma[est]))
 
@@ -421,3 +426,46 @@ def test_noise_probe_extrapolated_to_its_converged_sums(seed, exposure, monkeypa
         now_moved, now_left = _probe_sums(tile, stops, monkeypatch)
         variance = (now_moved / moved) / (now_left / left)  # as sigma_k^2 is scaled
         assert (0.95 <= variance <= 1.05) == near, (stops, variance)
+
+
+def _lines(rng, n_frames=8, shape=(40, 50), offset=None, excess=None):
+    """A fit's readings ``y = a x + b + noise`` of scenes ``x`` that vary along each trajectory, with
+    the noise model's variances, as :func:`offset_scores` takes them, and its scores."""
+    n = shape[0] * shape[1]
+    x = rng.uniform(0.2, 1.0, (n_frames, n))
+    variance = 1e-4 * (1 + 20 * x)
+    a = rng.normal(1, 0.05, n)
+    b = np.zeros(n) if offset is None else offset
+    y = a * x + b + rng.standard_normal((n_frames, n)) * np.sqrt(variance)
+    fit = SimpleNamespace(valid=np.ones(x.size, bool), variance=variance.ravel(), predicted=x.ravel(), y=y.ravel())
+    return fit, offset_scores(fit, np.ones(shape) if excess is None else excess)
+
+
+def test_offset_scores_are_each_pixels_intercept_over_its_standard_error():
+    rng = np.random.default_rng(3)
+    offset = np.zeros(2000)
+    offset[::97] = 1.0  # hot pixels: an offset of 13-50 standard errors of their intercept
+    fit, scores = _lines(rng, offset=offset)
+    x, y, v = (m.reshape(8, -1) for m in (fit.predicted, fit.y, fit.variance))
+    for i in (0, 97, 1234):  # against weighted least squares of y = a x + b, pixel by pixel
+        design = np.stack([x[:, i], np.ones(8)], axis=1) / np.sqrt(v[:, i])[:, None]
+        (_, b), *_ = np.linalg.lstsq(design, y[:, i] / np.sqrt(v[:, i]), rcond=None)
+        error = np.sqrt(np.linalg.inv(design.T @ design)[1, 1])
+        assert scores.ravel()[i] == pytest.approx(b / error, rel=1e-6)
+    healthy = scores.ravel()[offset == 0]
+    assert abs(np.mean(healthy)) < 0.05 and 0.95 < np.std(healthy) < 1.05  # N(0, 1) where no offset
+    assert np.all(scores.ravel()[offset > 0] > 6)
+
+
+def test_offset_scores_are_zero_where_the_scene_is_flat_and_shrunk_where_the_model_misfits():
+    rng = np.random.default_rng(4)
+    fit, _ = _lines(rng, n_frames=4)
+    fit.predicted.reshape(4, -1)[:, :10] = 0.5  # a flat trajectory: an offset is a gain there
+    fit.valid.reshape(4, -1)[2:, 10:20] = False  # two readings: no line
+    excess = np.full((40, 50), 2.0)  # the tile's typical excess: 2
+    excess[30:, :] = 8.0  # neighbours whose residuals are 4x the typical: half the score
+    excess[:5, 20:] = 1.0  # ... below it: the score as it is
+    scores, plain = offset_scores(fit, excess), offset_scores(fit, np.ones((40, 50)))
+    assert np.all(scores.ravel()[:20] == 0)
+    np.testing.assert_allclose(scores[30:], plain[30:] / 2, rtol=1e-6)
+    np.testing.assert_allclose(scores[:30], plain[:30], rtol=1e-6)

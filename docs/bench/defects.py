@@ -6,6 +6,8 @@
     python docs/bench/defects.py deadz  # dead and stuck ones found, by how plainly they differ from a healthy one
     python docs/bench/defects.py predict  # the error of the two predictions of the scene (solve.predict)
     python docs/bench/defects.py photos   # healthy photosites flagged on photographs (scikit-image's)
+    python docs/bench/defects.py model    # hot ones found by the scene model's offset test, by hotz's bins
+    python docs/bench/defects.py model photos  # healthy photosites that test flags on photographs
 
 Per sensor preset, scene, exposure and frame count: the percentage of each simulated kind
 flagged (in parentheses: flagged as that kind), over two 240x320 bursts with 0.5 % defects; and
@@ -84,6 +86,67 @@ def hot_found(measure, edges, kinds=("hot",)):
     print(f"bins of {measure.__name__}:", edges)
 
 
+def model_flags(b, sensor, codes):
+    """The photosites of a monochrome burst the scene solver's offset test flags (true motion, the
+    search's defects repaired first, as the pipeline does; every frame fitted)."""
+    from gainfpn_cli.defective import offset_shown, repair
+    from gainfpn_cli.solve.scene import solve_scene
+
+    frames = (b.frames.astype(np.float32) - sensor.black_level)[..., None]
+    frames = np.stack([repair(f, codes[..., None], None, ("Y",)) for f in frames])[..., 0]
+    result = solve_scene(frames, GlobalWarp(b.homographies), saturation=b.saturation)
+    return offset_shown(result.offsets) & (codes == 0)
+
+
+def model_found(scenes=("dead-leaves", "procedural"), exposures=(0.75, 0.075), seeds=(0, 1)):
+    """Per scene and exposure (paper 8-bit, 8 frames, 240x320, 0.5 % defects): the share of the hot
+    photosites flagged by the search alone and with the scene model's offset test, binned as
+    ``hotz``; and the healthy photosites the test flags on the same bursts without defects."""
+    edges = np.array([0, 4, 6, 10, 20, 40, np.inf])
+    sensor = PRESETS["paper"]
+    for scene in scenes:
+        for exposure in exposures:
+            total, before, after, false, pixels = np.zeros(6), np.zeros(6), np.zeros(6), 0, 0
+            for seed in seeds:
+                kw = dict(shape=(240, 320), n_frames=8, sensor=sensor, scene=scene, exposure=exposure, seed=seed)
+                b = simulate_burst(defects=0.005, **kw)
+                codes = codes_of(b, sensor)
+                hot = b.defects == D.HOT
+                bins = np.clip(np.digitize(hot_offset_z(b, sensor, hot), edges) - 1, 0, 5)
+                total += np.bincount(bins, minlength=6)
+                before += np.bincount(bins, weights=(codes[hot] > 0).astype(float), minlength=6)
+                found = (codes > 0) | model_flags(b, sensor, codes)
+                after += np.bincount(bins, weights=found[hot].astype(float), minlength=6)
+                clean = simulate_burst(**kw)
+                false += int(model_flags(clean, sensor, codes_of(clean, sensor)).sum())
+                pixels += clean.frames[0].size
+
+            def rates(found):
+                return " ".join(f"{f / t * 100:.0f}%({int(t)})" if t else "-" for f, t in zip(found, total))
+
+            print(f"{scene:12s} {exposure:5}: search {rates(before)}; with the model {rates(after)}; "
+                  f"healthy flagged by the model {false} ({false / pixels * 1e4:.2f}e-4)", flush=True)
+    print("bins of hot_offset_z:", edges)
+
+
+def model_photographs(scenes=None, seeds=(40, 41)):
+    """Healthy photosites the scene model's offset test flags on defect-free 240x320 paper bursts of 8
+    frames rendered from photographs, per exposure."""
+    from confidence import scene_of
+
+    sensor = PRESETS["paper"]
+    for exposure in (0.75, 0.075):
+        flagged = {}
+        for name in scenes or PHOTOS:
+            flagged[name] = 0
+            for seed in seeds:
+                b = simulate_burst(shape=(240, 320), n_frames=8, sensor=sensor, scene=scene_of(name), exposure=exposure,
+                                   seed=seed)
+                flagged[name] += int(model_flags(b, sensor, codes_of(b, sensor)).sum())
+        print(f"paper {exposure:5}: {flagged}; in all {sum(flagged.values())} of "
+              f"{len(flagged) * len(seeds) * 240 * 320}", flush=True)
+
+
 def prediction_errors(preset="raw12", scene="dead-leaves", n=8, seed=0):
     """The relative error of each prediction of :mod:`solve.predict` against the noise-free frames
     (noise off, the gains 1: what is left is the prediction's own), per plane: the mean absolute
@@ -142,6 +205,10 @@ elif __name__ == "__main__" and sys.argv[1:] == ["predict"]:
             prediction_errors(preset, scene)
 elif __name__ == "__main__" and sys.argv[1:] == ["hot"]:
     hot_found(offset_over_gain_spread, (0, 2, 4, 6, 8, 10, 15, np.inf))
+elif __name__ == "__main__" and sys.argv[1:] == ["model"]:
+    model_found()
+elif __name__ == "__main__" and sys.argv[1:] == ["model", "photos"]:
+    model_photographs()
 elif __name__ == "__main__" and sys.argv[1:] == ["hotz"]:
     hot_found(hot_offset_z, (0, 4, 6, 10, 20, 40, np.inf))
 elif __name__ == "__main__" and sys.argv[1:] == ["deadz"]:

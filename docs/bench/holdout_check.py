@@ -98,7 +98,7 @@ def rates(cases=pool):
     def keep(*args, **kwargs):  # the map before the check
         out = solve_planes(*args, **kwargs)
         if kwargs.get("regions") is None:
-            unguarded["k"] = out[0].copy()
+            unguarded["k"] = out.k.copy()
         return out
 
     solving.solve_planes = keep

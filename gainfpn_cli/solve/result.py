@@ -26,11 +26,15 @@ class GainResult:
         See the module: 0 where unestimated.
     stats : PaperStats, AccurateStats, SceneStats or None
         What the solver counted on the way.
+    offsets : ndarray of float32, shape (H, W), or None
+        The scene solver's score of an offset in each pixel's readings besides its gain
+        (:func:`solve.scene.offset_scores`; about N(0, 1) for a healthy pixel); None from the others.
     """
 
     k: np.ndarray
     confidence: np.ndarray
     stats: PaperStats | AccurateStats | SceneStats | None = None
+    offsets: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -136,4 +140,4 @@ def physical(result: GainResult, gain_range: tuple[float, float], structured: bo
         if est.any():
             regauge(k, est, everywhere=structured)
         k[outside], confidence[outside] = 1.0, 0.0
-    return GainResult(k.astype(np.float32), confidence.astype(np.float32), result.stats)
+    return GainResult(k.astype(np.float32), confidence.astype(np.float32), result.stats, result.offsets)

@@ -36,7 +36,7 @@ import numpy as np
 from ..geometry.resample import low_pass, window_sum
 from .result import GainResult, SceneStats, confidence_from_sigma
 from .scenemodel import fit_tile, gain_information, gauss_newton_path, gauss_newton_step
-from .tiling import Tile, blend, checked_problem, solve_tiles, tiles_of
+from .tiling import Tile, blend, checked_problem, ramp_sums, solve_tiles, tiles_of
 
 
 @dataclass(frozen=True)
@@ -126,9 +126,13 @@ def solve_scene_many(problems, *, options: SceneOptions = SceneOptions(), worker
 
 def _assemble(tiles, results, shape) -> GainResult:
     opt = tiles[0].options
-    b = blend([(t.y0, t.x0) for t in tiles], results, shape, halo=opt.halo, gain_range=opt.gain_range)
+    origins = [(t.y0, t.x0) for t in tiles]
+    scored = [(r[3], r[1] > 0) for r in results]  # blend frees the results as it goes
+    (offsets,), weight = ramp_sums(origins, scored, lambda r: (r[0],), lambda r: r[1], shape, opt.halo)
+    offsets = np.divide(offsets, weight, out=np.zeros(shape, np.float32), where=weight > 0)
+    b = blend(origins, results, shape, halo=opt.halo, gain_range=opt.gain_range)
     return GainResult(b.k, b.confidence, SceneStats(len(tiles), b.iterations, b.unestimated_pixels,
-                                                    b.out_of_range_pixels, b.median_confidence))
+                                                    b.out_of_range_pixels, b.median_confidence), offsets)
 
 
 def prepare(problem: dict, options: SceneOptions) -> list[Tile]:
@@ -143,13 +147,14 @@ def prepare(problem: dict, options: SceneOptions) -> list[Tile]:
     return tiles_of(frames, excluded, motion, problem.get("saturation"), options, exposures)
 
 
-def _solve_tile(tile: Tile) -> tuple[np.ndarray, np.ndarray, int]:
-    """k, confidence and conjugate-gradient iterations of one tile (its halo included)."""
+def _solve_tile(tile: Tile) -> tuple[np.ndarray, np.ndarray, int, np.ndarray]:
+    """k, confidence, conjugate-gradient iterations and :func:`offset_scores` of one tile (its halo
+    included)."""
     opt = tile.options
     n_frames, h, w = tile.frames.shape
     fit = fit_tile(tile)
     if fit is None:
-        return np.ones((h, w)), np.zeros((h, w)), 0
+        return np.ones((h, w)), np.zeros((h, w)), 0, np.zeros((h, w), np.float32)
     a, est, iterations = fit.a, fit.est, fit.iterations
     # the prior pulls each a towards 1 by the information of its readings over that plus the prior's;
     # the FPN model shrinks k by its sigma_k, so the pull is taken back here (docs/method.md 8b)
@@ -177,13 +182,42 @@ def _solve_tile(tile: Tile) -> tuple[np.ndarray, np.ndarray, int]:
     # (a left-out reading, a defect's or a mover's, is not one the solve could have used)
     seen = np.ones(tile.frames.shape, bool) if tile.excluded is None else ~tile.excluded
     black = (tile.frames <= 0) & seen
-    sigma_k = _sigma(fit.residual, fitted, da, fit.variance, fit.weight, a, est, n_frames, black.any(axis=0))
+    actual, expected = _residual_sums(fit, fitted, (h, w))
+    sigma_k = _sigma(da, _excess(actual, expected, black.any(axis=0)), a, est)
     # ... and the share of their gain that readings near black do not see, times the gains' spread
     censored = _censored_per_pixel(fit, black, seen, a)
     if (censored < 1).any():
         sigma_k = np.sqrt(sigma_k**2 + (1 - censored) ** 2 * _fpn_variance(k, sigma_k, censored, est))
     confidence = np.where(est, confidence_from_sigma(sigma_k), 0.0)
-    return k.astype(np.float32), confidence.astype(np.float32), iterations
+    # the offsets' test takes each pixel's neighbours' excess (its own offset would excuse itself)
+    offsets = offset_scores(fit, _excess(actual, expected, black.any(axis=0), own=False))
+    return k.astype(np.float32), confidence.astype(np.float32), iterations, offsets
+
+
+def offset_scores(fit, excess: np.ndarray) -> np.ndarray:
+    """Per pixel, how plainly its readings carry an offset besides the gain: the intercept ``b`` of
+    the line ``y_t = a x_t + b`` fitted by weighted least squares to its readings ``y_t`` against the
+    fitted scene ``x_t`` it sees (``B W_t S``, each reading weighted by the noise model's inverse
+    variance), over its standard error; float32, 0 where the pixel's scene does not vary along its
+    trajectory or fewer than 3 readings count. A healthy pixel scores about N(0, 1); a hot one's
+    dark-current offset scores as far as the scene crossing its trajectory tells it from a gain
+    (docs/method.md section 12b)."""
+    shape, n = excess.shape, excess.size
+    weight = np.where(fit.valid, 1.0 / fit.variance, 0.0).reshape(-1, n)
+    x, y = fit.predicted.reshape(-1, n), fit.y.reshape(-1, n)
+    total = weight.sum(axis=0)
+    safe = np.where(total > 0, total, 1.0)
+    x_mean, y_mean = (weight * x).sum(axis=0) / safe, (weight * y).sum(axis=0) / safe
+    spread = (weight * (x - x_mean) ** 2).sum(axis=0)
+    # a spread below 1e-9 of the squared level is rounding: the scene is flat along the trajectory
+    use = ((weight > 0).sum(axis=0) >= 3) & (spread > 1e-9 * total * x_mean**2)
+    spread = np.where(use, spread, 1.0)
+    slope = (weight * (x - x_mean) * (y - y_mean)).sum(axis=0) / spread
+    intercept = y_mean - slope * x_mean
+    variance = 1.0 / safe + x_mean**2 / spread
+    score = np.where(use, intercept / np.sqrt(variance), 0.0).reshape(shape)
+    typical = np.median(excess[use.reshape(shape)]) if use.any() else 1.0
+    return (score / np.sqrt(np.maximum(excess / typical, 1.0))).astype(np.float32)
 
 
 #: Seed of the noise probe of :func:`_solve_tile` (with the tile's origin).
@@ -307,31 +341,29 @@ def _fpn_variance(k, sigma_k, followed, est) -> float:
     return max(float(np.sum((k[use] - 1) ** 2 - sigma_k[use] ** 2) / np.sum(followed[use] ** 2)), 0.0)
 
 
-def _sigma(residual, fitted, da, variance, weight, a, est, n_frames, at_black) -> np.ndarray:
+def _sigma(da, excess, a, est) -> np.ndarray:
     """``sigma_k`` from the noise probe (inf where ``est`` is False): ``da`` is how a draw of the
-    noise model moves ``a``, ``fitted`` what of it the fit leaves in the readings.
-
-    The probe's ``da^2`` averaged over a 9x9 window is a's variance if the noise model is right;
-    it is scaled by the window's residual variance over what the model predicts for the residuals
-    (the probe's, which the fit shrinks by the same leverage as the data's), so pixels by features
-    the model cannot explain, or readings noisier than the model, report their larger error. A
-    window with a pixel that read black in some frame (``at_black``) is not scaled down: the
-    readings there that stay above black are the noise's high draws, which a fitted scene explains
-    exactly, so their residuals read smaller than the noise (docs/method.md section 8b).
-    The scaling is :func:`_excess`."""
+    noise model moves ``a``; its square averaged over a 9x9 window is a's variance if the noise model
+    is right, scaled by the window's ``excess`` (:func:`_excess`), so that pixels by features
+    the model cannot explain, or readings noisier than the model, report their larger error."""
     shape = est.shape
-    n = est.size
-    use = (weight > 0).reshape(n_frames, n)
-
-    def per_pixel(values):
-        return np.where(use, values.reshape(n_frames, n), 0.0).sum(axis=0).reshape(shape)
-
-    excess = _excess(per_pixel(residual**2 / variance), per_pixel(fitted**2 / variance), at_black)
     moved = np.where(est, da.reshape(shape) ** 2, 0.0)
     variance_a = np.divide(window_sum(moved, 9), window_sum(est.astype(np.float64), 9), out=np.full(shape, np.inf),
                            where=est)
     np.multiply(variance_a, excess, out=variance_a, where=est)  # inf stays inf where a is not estimated
     return np.sqrt(np.maximum(variance_a, 0.0)) / np.maximum(a.reshape(shape), 1e-3) ** 2
+
+
+def _residual_sums(fit, fitted, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Per pixel of a tile of ``shape``, the sums over its readings that count of the data's squared
+    residuals and of the noise probe's (``fitted``, which the fit shrinks by the same leverage as the
+    data's), in units of the noise model's variance: :func:`_excess`'s ``actual`` and ``expected``."""
+    use = (fit.weight > 0).reshape(-1, fit.a.size)
+
+    def per_pixel(values):
+        return np.where(use, values.reshape(use.shape), 0.0).sum(axis=0).reshape(shape)
+
+    return per_pixel(fit.residual**2 / fit.variance), per_pixel(fitted**2 / fit.variance)
 
 
 #: The residual excess of :func:`_excess`: its window (px), the broader window it is shrunk towards
@@ -342,16 +374,19 @@ def _sigma(residual, fitted, da, variance, weight, a, est, n_frames, at_black) -
 EXCESS_WINDOW, EXCESS_BROAD, EXCESS_PRIOR_DOF = 5, 13, 20.0
 
 
-def _excess(actual, expected, at_black) -> np.ndarray:
+def _excess(actual, expected, at_black, own: bool = True) -> np.ndarray:
     """The residuals' variance over what the noise model predicts for them, per pixel: ``actual`` and
-    ``expected`` are each pixel's sums over its readings (the data's squared residuals and the noise
-    probe's, in units of the noise model's variance), pooled over :data:`EXCESS_WINDOW` and shrunk
-    towards their ratio over :data:`EXCESS_BROAD` with the weight of :data:`EXCESS_PRIOR_DOF` degrees
-    of freedom: ``(A + D R) / (E + D)``. Where a window holds a pixel that read black (``at_black``)
-    the ratio is at least 1."""
-    local_actual, local_expected = window_sum(actual, EXCESS_WINDOW), window_sum(expected, EXCESS_WINDOW)
-    broad_expected = window_sum(expected, EXCESS_BROAD)
-    broad = np.divide(window_sum(actual, EXCESS_BROAD), broad_expected, out=np.ones(actual.shape),
+    ``expected`` are each pixel's sums over its readings (:func:`_residual_sums`), pooled over
+    :data:`EXCESS_WINDOW` and shrunk towards their ratio over :data:`EXCESS_BROAD` with the weight of
+    :data:`EXCESS_PRIOR_DOF` degrees of freedom: ``(A + D R) / (E + D)``; without the pixel's own
+    readings if not ``own``. Where a window holds a pixel that read black (``at_black``) the ratio is
+    at least 1: the readings there that stay above black are the noise's high draws, which a fitted
+    scene explains exactly, so their residuals read smaller than the noise (docs/method.md 8b)."""
+    drop = 0.0 if own else 1.0
+    local_actual = window_sum(actual, EXCESS_WINDOW) - drop * actual
+    local_expected = window_sum(expected, EXCESS_WINDOW) - drop * expected
+    broad_expected = window_sum(expected, EXCESS_BROAD) - drop * expected
+    broad = np.divide(window_sum(actual, EXCESS_BROAD) - drop * actual, broad_expected, out=np.ones(actual.shape),
                       where=broad_expected > 0)
     excess = (local_actual + EXCESS_PRIOR_DOF * broad) / (local_expected + EXCESS_PRIOR_DOF)
     return np.where(window_sum(at_black.astype(np.float32), EXCESS_WINDOW) > 0, np.maximum(excess, 1.0), excess)
