@@ -225,6 +225,8 @@ def test_tiles_give_the_same_map_for_one_and_two_workers():
     assert one.stats.tiles == 6
     np.testing.assert_array_equal(one.k, two.k)
     np.testing.assert_array_equal(one.confidence, two.confidence)
+    np.testing.assert_array_equal(one.offsets, two.offsets)
+    assert np.count_nonzero(one.offsets) > 0.9 * one.offsets.size  # every tile's scores blended in
 
 
 @pytest.mark.parametrize("preset, size", [("paper", "128x96"), ("raw12", "192x144")])

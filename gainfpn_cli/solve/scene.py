@@ -127,8 +127,9 @@ def solve_scene_many(problems, *, options: SceneOptions = SceneOptions(), worker
 def _assemble(tiles, results, shape) -> GainResult:
     opt = tiles[0].options
     origins = [(t.y0, t.x0) for t in tiles]
-    scored = [(r[3], r[1] > 0) for r in results]  # blend frees the results as it goes
-    (offsets,), weight = ramp_sums(origins, scored, lambda r: (r[0],), lambda r: r[1], shape, opt.halo)
+    scored = [r[3] for r in results]  # blend frees the results as it goes
+    # each pixel's score from the tiles that scored it (0: no line fitted there)
+    (offsets,), weight = ramp_sums(origins, scored, lambda r: (r,), lambda r: r != 0, shape, opt.halo)
     offsets = np.divide(offsets, weight, out=np.zeros(shape, np.float32), where=weight > 0)
     b = blend(origins, results, shape, halo=opt.halo, gain_range=opt.gain_range)
     return GainResult(b.k, b.confidence, SceneStats(len(tiles), b.iterations, b.unestimated_pixels,
