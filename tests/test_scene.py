@@ -471,3 +471,7 @@ def test_offset_scores_are_zero_where_the_scene_is_flat_and_shrunk_where_the_mod
     assert np.all(scores.ravel()[:20] == 0)
     np.testing.assert_allclose(scores[30:], plain[30:] / 2, rtol=1e-6)
     np.testing.assert_allclose(scores[:30], plain[:30], rtol=1e-6)
+    # residuals all 0 (readings the model explains exactly): nothing to scale by, and no warning
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        np.testing.assert_array_equal(offset_scores(fit, np.zeros((40, 50))), plain)

@@ -217,8 +217,9 @@ def offset_scores(fit, excess: np.ndarray) -> np.ndarray:
     intercept = y_mean - slope * x_mean
     variance = 1.0 / safe + x_mean**2 / spread
     score = np.where(use, intercept / np.sqrt(variance), 0.0).reshape(shape)
-    typical = np.median(excess[use.reshape(shape)]) if use.any() else 1.0
-    return (score / np.sqrt(np.maximum(excess / typical, 1.0))).astype(np.float32)
+    typical = float(np.median(excess[use.reshape(shape)])) if use.any() else 0.0
+    relative = excess / typical if typical > 0 else np.ones(shape)  # residuals all 0: readings the model explains
+    return (score / np.sqrt(np.maximum(relative, 1.0))).astype(np.float32)
 
 
 #: Seed of the noise probe of :func:`_solve_tile` (with the tile's origin).
@@ -383,11 +384,11 @@ def _excess(actual, expected, at_black, own: bool = True) -> np.ndarray:
     readings if not ``own``. Where a window holds a pixel that read black (``at_black``) the ratio is
     at least 1: the readings there that stay above black are the noise's high draws, which a fitted
     scene explains exactly, so their residuals read smaller than the noise (docs/method.md 8b)."""
-    drop = 0.0 if own else 1.0
-    local_actual = window_sum(actual, EXCESS_WINDOW) - drop * actual
-    local_expected = window_sum(expected, EXCESS_WINDOW) - drop * expected
-    broad_expected = window_sum(expected, EXCESS_BROAD) - drop * expected
-    broad = np.divide(window_sum(actual, EXCESS_BROAD) - drop * actual, broad_expected, out=np.ones(actual.shape),
+    own_actual, own_expected = (0.0, 0.0) if own else (actual, expected)
+    local_actual = window_sum(actual, EXCESS_WINDOW) - own_actual
+    local_expected = window_sum(expected, EXCESS_WINDOW) - own_expected
+    broad_expected = window_sum(expected, EXCESS_BROAD) - own_expected
+    broad = np.divide(window_sum(actual, EXCESS_BROAD) - own_actual, broad_expected, out=np.ones(actual.shape),
                       where=broad_expected > 0)
     excess = (local_actual + EXCESS_PRIOR_DOF * broad) / (local_expected + EXCESS_PRIOR_DOF)
     return np.where(window_sum(at_black.astype(np.float32), EXCESS_WINDOW) > 0, np.maximum(excess, 1.0), excess)
