@@ -8,6 +8,7 @@
     python docs/bench/defects.py photos   # healthy photosites flagged on photographs (scikit-image's)
     python docs/bench/defects.py model    # hot ones found by the scene model's offset test, by hotz's bins
     python docs/bench/defects.py model photos  # healthy photosites that test flags on photographs
+    python docs/bench/defects.py model scores  # the healthy photosites' scores of that test
 
 Per sensor preset, scene, exposure and frame count: the percentage of each simulated kind
 flagged (in parentheses: flagged as that kind), over two 240x320 bursts with 0.5 % defects; and
@@ -86,16 +87,48 @@ def hot_found(measure, edges, kinds=("hot",)):
     print(f"bins of {measure.__name__}:", edges)
 
 
-def model_flags(b, sensor, codes):
-    """The photosites of a monochrome burst the scene solver's offset test flags (true motion, the
-    search's defects repaired first, as the pipeline does; every frame fitted)."""
-    from gainfpn_cli.defective import offset_shown, repair
+def model_scores(b, sensor, codes):
+    """The scene solver's offset scores of a monochrome burst's photosites the search left healthy
+    (true motion, the search's defects repaired first, as the pipeline does; every frame fitted; 0
+    at the search's defects)."""
+    from gainfpn_cli.defective import repair
     from gainfpn_cli.solve.scene import solve_scene
 
     frames = (b.frames.astype(np.float32) - sensor.black_level)[..., None]
     frames = np.stack([repair(f, codes[..., None], None, ("Y",)) for f in frames])[..., 0]
     result = solve_scene(frames, GlobalWarp(b.homographies), saturation=b.saturation)
-    return offset_shown(result.offsets) & (codes == 0)
+    return np.where(codes == 0, result.offsets, 0)
+
+
+def model_flags(b, sensor, codes):
+    """The photosites the scene solver's offset test flags besides the search's (:func:`model_scores`)."""
+    from gainfpn_cli.defective import offset_shown
+
+    return offset_shown(model_scores(b, sensor, codes))
+
+
+def healthy_scores(seeds=(40, 41)):
+    """The offset scores of healthy photosites (defect-free 240x320 paper bursts of 8 frames, both
+    scenes and the photographs, 75 % and 7.5 %): their spread per burst, the largest, and how many
+    pass the threshold."""
+    from confidence import scene_of
+    from gainfpn_cli.defective import Z_MODEL_OFFSET
+
+    sensor = PRESETS["paper"]
+    spreads, largest, passed, scored = [], {}, 0, 0
+    for name in ("dead-leaves", "procedural") + PHOTOS:
+        for exposure in (0.75, 0.075):
+            for seed in seeds:
+                b = simulate_burst(shape=(240, 320), n_frames=8, sensor=sensor, scene=scene_of(name),
+                                   exposure=exposure, seed=seed)
+                z = model_scores(b, sensor, codes_of(b, sensor))
+                z = z[z != 0]
+                spreads.append(float(np.std(z)))
+                largest[name] = max(largest.get(name, -np.inf), float(z.max()))
+                passed += int(np.count_nonzero(z > Z_MODEL_OFFSET))
+                scored += z.size
+    print(f"{len(spreads)} bursts: spread {min(spreads):.2f}-{max(spreads):.2f}; largest by scene "
+          f"{ {k: round(v, 2) for k, v in largest.items()} }; above {Z_MODEL_OFFSET}: {passed} of {scored}")
 
 
 def model_found(scenes=("dead-leaves", "procedural"), exposures=(0.75, 0.075), seeds=(0, 1)):
@@ -209,6 +242,8 @@ elif __name__ == "__main__" and sys.argv[1:] == ["model"]:
     model_found()
 elif __name__ == "__main__" and sys.argv[1:] == ["model", "photos"]:
     model_photographs()
+elif __name__ == "__main__" and sys.argv[1:] == ["model", "scores"]:
+    healthy_scores()
 elif __name__ == "__main__" and sys.argv[1:] == ["hotz"]:
     hot_found(hot_offset_z, (0, 4, 6, 10, 20, 40, np.inf))
 elif __name__ == "__main__" and sys.argv[1:] == ["deadz"]:
