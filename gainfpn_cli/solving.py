@@ -278,7 +278,9 @@ def solve_raws(burst, frames, excluded, exposures, useds, in_frame, solver: Solv
         grid_hot = np.zeros(result.k.shape, bool)
         if solver.defects and result.offsets is not None and abs(grid.S[0, 0]) == 1:  # not a CFA colour's
             grid_hot = offset_shown(result.offsets)
-        parts = (np.where(grid_hot, 1, result.k), np.where(grid_hot, 0, result.confidence), grid_hot)
+        parts = (result.k, result.confidence, grid_hot)
+        if grid_hot.any():  # copies only then (a 12 MP plane is 48 MB)
+            parts = (np.where(grid_hot, 1, result.k), np.where(grid_hot, 0, result.confidence), grid_hot)
         for plane, part, elsewhere in zip((k, confidence, hot), parts, (1, 0, False)):
             if regions is not None:  # the region's, and k = 1, confidence 0 elsewhere
                 part, region = np.full(grid.shape, elsewhere, part.dtype), part
