@@ -70,7 +70,7 @@ def find(frames: np.ndarray, cfa: str | None, channels: tuple[str, ...], *, excl
 #: Score of an offset in a photosite's readings against the scene solver's fitted scene past which it
 #: is hot (:func:`offset_shown`): about N(0, 1) on healthy photosites, with heavier tails where the
 #: model misfits. On 48 defect-free 240x320 paper bursts of 8 frames (the simulated scenes, on which
-#: it was chosen, at most 5.67; ten photographs, 7.07) 4 of 3.5 million healthy ones scored above it
+#: it was chosen, at most 5.67; ten photographs, 7.09) 4 of 3.4 million healthy ones scored above it
 #: (docs/bench/defects.py model scores).
 Z_MODEL_OFFSET = 6.0
 

@@ -461,9 +461,10 @@ def test_offset_scores_are_each_pixels_intercept_over_its_standard_error():
 
 def test_offset_scores_are_zero_where_the_scene_is_flat_and_shrunk_where_the_model_misfits():
     rng = np.random.default_rng(4)
-    fit, _ = _lines(rng, n_frames=4)
-    fit.predicted.reshape(4, -1)[:, :10] = 0.5  # a flat trajectory: an offset is a gain there
-    fit.valid.reshape(4, -1)[2:, 10:20] = False  # two readings: no line
+    fit, _ = _lines(rng, n_frames=6)
+    fit.predicted.reshape(6, -1)[:, :10] = 0.5  # a flat trajectory: an offset is a gain there
+    fit.valid.reshape(6, -1)[2:, 10:20] = False  # two readings: too few for the test
+    assert np.all(offset_scores(fit, np.ones((40, 50))).ravel()[20:] != 0)
     excess = np.full((40, 50), 2.0)  # the tile's typical excess: 2
     excess[30:, :] = 8.0  # neighbours whose residuals are 4x the typical: half the score
     excess[:5, 20:] = 1.0  # ... below it: the score as it is

@@ -195,14 +195,20 @@ def _solve_tile(tile: Tile) -> tuple[np.ndarray, np.ndarray, int, np.ndarray]:
     return k.astype(np.float32), confidence.astype(np.float32), iterations, offsets
 
 
+#: Fewest readings of a pixel :func:`offset_scores` scores: with 4 (a 5-frame burst, one frame held out),
+#: the latent scene's 4 samples a pixel take up most of them, and the test flagged 5-17 healthy
+#: photosites of 76 800 on 240x320 paper dead leaves (seeds 3-6, through the pipeline); with 5, 0-3.
+OFFSET_MIN_READINGS = 5
+
+
 def offset_scores(fit, excess: np.ndarray) -> np.ndarray:
     """Per pixel, how plainly its readings carry an offset besides the gain: the intercept ``b`` of
     the line ``y_t = a x_t + b`` fitted by weighted least squares to its readings ``y_t`` against the
     fitted scene ``x_t`` it sees (``B W_t S``, each reading weighted by the noise model's inverse
     variance), over its standard error; float32, 0 where the pixel's scene does not vary along its
-    trajectory or fewer than 3 readings count. A healthy pixel scores about N(0, 1); a hot one's
-    dark-current offset scores as far as the scene crossing its trajectory tells it from a gain
-    (docs/method.md section 12b)."""
+    trajectory or fewer than :data:`OFFSET_MIN_READINGS` readings count. A healthy pixel scores about
+    N(0, 1); a hot one's dark-current offset scores as far as the scene crossing its trajectory tells
+    it from a gain (docs/method.md section 12b)."""
     shape, n = excess.shape, excess.size
     weight = np.where(fit.valid, 1.0 / fit.variance, 0.0).reshape(-1, n)
     x, y = fit.predicted.reshape(-1, n), fit.y.reshape(-1, n)
@@ -211,7 +217,7 @@ def offset_scores(fit, excess: np.ndarray) -> np.ndarray:
     x_mean, y_mean = (weight * x).sum(axis=0) / safe, (weight * y).sum(axis=0) / safe
     spread = (weight * (x - x_mean) ** 2).sum(axis=0)
     # a spread below 1e-9 of the squared level is rounding: the scene is flat along the trajectory
-    use = ((weight > 0).sum(axis=0) >= 3) & (spread > 1e-9 * total * x_mean**2)
+    use = ((weight > 0).sum(axis=0) >= OFFSET_MIN_READINGS) & (spread > 1e-9 * total * x_mean**2)
     spread = np.where(use, spread, 1.0)
     slope = (weight * (x - x_mean) * (y - y_mean)).sum(axis=0) / spread
     intercept = y_mean - slope * x_mean
