@@ -183,15 +183,16 @@ def _solve_tile(tile: Tile) -> tuple[np.ndarray, np.ndarray, int, np.ndarray]:
     # (a left-out reading, a defect's or a mover's, is not one the solve could have used)
     seen = np.ones(tile.frames.shape, bool) if tile.excluded is None else ~tile.excluded
     black = (tile.frames <= 0) & seen
+    at_black = black.any(axis=0)
     actual, expected = _residual_sums(fit, fitted, (h, w))
-    sigma_k = _sigma(da, _excess(actual, expected, black.any(axis=0)), a, est)
+    sigma_k = _sigma(da, _excess(actual, expected, at_black), a, est)
     # ... and the share of their gain that readings near black do not see, times the gains' spread
     censored = _censored_per_pixel(fit, black, seen, a)
     if (censored < 1).any():
         sigma_k = np.sqrt(sigma_k**2 + (1 - censored) ** 2 * _fpn_variance(k, sigma_k, censored, est))
     confidence = np.where(est, confidence_from_sigma(sigma_k), 0.0)
     # the offsets' test takes each pixel's neighbours' excess (its own offset would excuse itself)
-    offsets = offset_scores(fit, _excess(actual, expected, black.any(axis=0), own=False))
+    offsets = offset_scores(fit, _excess(actual, expected, at_black, own=False))
     return k.astype(np.float32), confidence.astype(np.float32), iterations, offsets
 
 
