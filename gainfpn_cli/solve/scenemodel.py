@@ -56,22 +56,28 @@ def _add_smoothness(v, fh, fw, weight, out):
             out[i] += weight * change
 
 
+#: Levels the noise model's bin edges are the quantiles of (every m-th of a tile's readings, m the
+#: readings over this): its medians take every reading, but sorting all of a 12 MP tile's ~590 000
+#: levels for the edges took 35 ms of a fit's 50 ms noise model, four times a tile (docs/limits.md).
+EDGE_SAMPLES = 1 << 15
+
+
 def noise_variance(residuals: np.ndarray, predicted: np.ndarray, bins: int = 8) -> tuple[float, float]:
     """``(alpha, beta)`` of the noise model ``var = alpha + beta * predicted`` (shot and read
-    noise), fitted to the squared ``residuals`` by robust medians over quantile bins of the level."""
-    ordered = np.sort(predicted)
-    edges = np.quantile(ordered, np.linspace(0, 1, bins + 1))
-    # bin b holds the levels in [edges[b], edges[b + 1]) (the last one its top edge too): a slice of
-    # the sorted levels, and the squares gathered bin by bin in one pass
-    bounds = np.searchsorted(ordered, edges, side="left")
-    bounds[0], bounds[-1] = 0, ordered.size
-    squares = np.empty(ordered.size)
-    _squares_by_bin(np.asarray(residuals, np.float64), np.asarray(predicted, np.float64), edges, bounds[:-1], squares)
+    noise), fitted to the squared ``residuals`` by robust medians over bins of the level (quantile
+    bins of up to :data:`EDGE_SAMPLES` levels evenly spaced in the readings' order)."""
+    levels = np.asarray(predicted, np.float64)
+    edges = np.quantile(levels[:: max(1, levels.size // EDGE_SAMPLES)], np.linspace(0, 1, bins + 1))
+    # bin b holds the levels in [edges[b], edges[b + 1]) (the first all below, the last all above), its
+    # levels and squares gathered into one slice of each in one pass
+    by_level, squares = np.empty(levels.size), np.empty(levels.size)
+    counts = _by_bin(np.asarray(residuals, np.float64), levels, edges, by_level, squares)
+    bounds = np.concatenate([[0], np.cumsum(counts)])
     level, variance = [], []
     for lo, hi in pairwise(bounds):
         if hi - lo >= 8:
-            level.append(np.median(ordered[lo:hi]))
-            variance.append(np.median(squares[lo:hi]) / CHI2_MEDIAN)
+            level.append(np.median(by_level[lo:hi], overwrite_input=True))
+            variance.append(np.median(squares[lo:hi], overwrite_input=True) / CHI2_MEDIAN)
     if len(level) < 2 or np.ptp(level) <= 0:
         return float(np.mean(variance)) if variance else 1.0, 0.0
     beta, alpha = np.polyfit(level, variance, 1)
@@ -82,17 +88,28 @@ def noise_variance(residuals: np.ndarray, predicted: np.ndarray, bins: int = 8) 
 
 
 @compiled
-def _squares_by_bin(residuals, levels, edges, starts, out):
-    """``residuals**2`` into ``out``, bin by bin: the bin of a level is the last of ``edges[:-1]`` at or
-    below it, and bin b's squares fill ``out`` from ``starts[b]``."""
-    fill = starts.copy()
+def _by_bin(residuals, levels, edges, by_level, squares):
+    """Each level and its residual's square into ``by_level`` and ``squares``, bin by bin (the bin of
+    a level: the last of ``edges[1:-1]`` at or below it, else the first), in the readings' order
+    within a bin; returns the bins' counts."""
     last = edges.size - 2
-    for i in range(residuals.size):
+    which = np.empty(levels.size, np.int8)
+    counts = np.zeros(last + 1, np.int64)
+    for i in range(levels.size):
         b = last
         while b > 0 and levels[i] < edges[b]:
             b -= 1
-        out[fill[b]] = residuals[i] * residuals[i]
+        which[i] = b
+        counts[b] += 1
+    fill = np.zeros(last + 1, np.int64)
+    for b in range(1, last + 1):
+        fill[b] = fill[b - 1] + counts[b - 1]
+    for i in range(levels.size):
+        b = which[i]
+        by_level[fill[b]] = levels[i]
+        squares[fill[b]] = residuals[i] * residuals[i]
         fill[b] += 1
+    return counts
 
 
 @dataclass(frozen=True)
