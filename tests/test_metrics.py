@@ -92,6 +92,40 @@ def test_evaluate_reports_the_bound_and_the_estimate_does_not_pass_it(tmp_path):
     assert (line in result.output) == (f"{frame:.1f}" != f"{ratio:.1f}"), (frame, ratio)
 
 
+def test_evaluate_scores_the_healthy_photosites_and_counts_the_defects_apart(tmp_path):
+    # a burst with 2 % defects: the gain figures and the confidence's tenths are those of the photosites
+    # the map estimated that the truth calls healthy; each kind of defect is counted, found or given a gain
+    from gainfpn_cli.files import read_exr_planes
+    from gainfpn_cli.sim.truth import load_truth
+    from gainfpn_cli.solve.defects import KINDS
+    from gainfpn_cli.solve.result import sigma_from_confidence
+
+    runner = CliRunner()
+    sim, out = tmp_path / "sim", tmp_path / "out"
+    assert runner.invoke(main, ["simulate", str(sim), "--size", "128x96", "--frames", "6", "--seed", "4",
+                                "--defects", "0.02"]).exit_code == 0
+    assert runner.invoke(main, ["estimate", str(sim), "-o", str(out), "--quiet", "--workers", "1"]).exit_code == 0
+    result = runner.invoke(main, ["evaluate", str(out), "--truth", str(sim)])
+    assert result.exit_code == 0, result.output
+    scores = json.loads((out / "evaluation.json").read_text())
+    truth = load_truth(sim)
+    planes, _ = read_exr_planes(out / "gain_map.exr")
+    k, confidence, written = planes["Y"], planes["confidence"], planes["defect"]
+    est = confidence > 0
+    healthy = est & (truth.defects == 0)
+    assert scores["residual_fpn_percent"] == pytest.approx(metrics.residual_fpn_percent(k, truth.gain, healthy))
+    assert scores["confidence_deciles"] == pytest.approx(
+        confidence_deciles(k, truth.gain, sigma_from_confidence(confidence), healthy))
+    assert scores["estimated_percent"] == pytest.approx(100.0 * est.mean())
+    for kind, code in KINDS.items():
+        mine = truth.defects == code
+        assert scores["defects"][kind] == {"true": int(mine.sum()), "flagged": int((mine & (written != 0)).sum()),
+                                           "given_a_gain": int((mine & est).sum())}
+    assert scores["defects"]["healthy_flagged"] == int(((truth.defects == 0) & (written != 0)).sum())
+    assert sum(scores["defects"][kind]["true"] for kind in KINDS) == int((truth.defects != 0).sum()) > 100
+    assert "defective in the truth: hot " in result.output
+
+
 def test_scores_over_the_whole_frame_count_what_the_map_did_not_estimate():
     # a map that estimates the left half only: its own figures are the left half's, the frame's take
     # the right half as written (k = 1) and leave out the photosites the truth calls defective

@@ -128,6 +128,12 @@ def evaluate(est_dir, sim_dir, out_dir, overwrite, as_json, quiet):
     click.echo(f"{'':24}{'before':>10}{'after':>10}")
     click.echo(f"{'gain FPN (%)':24}{scores['input_fpn_percent']:>10.2f}{scores['residual_fpn_percent']:>10.2f}")
     click.echo(f"{'MSE frame 0 (DN^2)':24}{scores['mse_before']:>10.2f}{scores['mse_after']:>10.2f}")
+    defects = scores.get("defects")
+    if defects:
+        found = [f"{kind} {d['true']} ({d['flagged']} coded, {d['given_a_gain']} given a gain)"
+                 for kind, d in defects.items() if kind != "healthy_flagged" and d["true"]]
+        click.echo("over the photosites the truth calls healthy; defective in the truth: "
+                   f"{', '.join(found) or 'none'}; healthy coded defective: {defects['healthy_flagged']}")
     if scores.get("plane_residual_fpn_percent"):
         click.echo("gain FPN after, by CFA plane (%): " + ", ".join(
             f"{name} {value:.2f}" if value is not None else f"{name} not estimated"

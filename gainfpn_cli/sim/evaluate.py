@@ -13,6 +13,7 @@ from ..geometry.planes import plane_views
 from ..metrics import confidence_deciles, mse, residual_fpn_percent
 from ..outputs import read_gain_map
 from ..report import Report
+from ..solve.defects import KINDS
 from ..solve.result import sigma_from_confidence
 from .truth import load_truth, residual_bound_percent
 
@@ -20,7 +21,8 @@ from .truth import load_truth, residual_bound_percent
 def evaluate(out_dir: Path, sim_dir: Path) -> dict:
     """Residual gain FPN, the paper's MSE before/after and the confidence's calibration (per tenth of
     the written sigma_k, k's actual error over it: ``metrics.confidence_deciles``), against a
-    simulation's truth.
+    simulation's truth: over the photosites the map estimated that the truth calls healthy. Where
+    the simulation has defects, also how many of each kind the map found (:func:`defect_counts`).
 
     Refuses a truth that is not this estimate's: another size, CFA layout or white level
     (bit depth), or frames whose digests differ from those the estimate recorded."""
@@ -34,14 +36,32 @@ def evaluate(out_dir: Path, sim_dir: Path) -> dict:
     first = read_frame(sim_paths[0])
     _check_truth(report, attrs, k, truth, first, sim_paths, out_dir, sim_dir)
     est = confidence > 0
-    if not est.any():
+    # a defective photosite's error is not a gain's (a hot one's offset, a dead or stuck one's reading):
+    # the gain figures are the healthy photosites', the defects counted apart
+    scored = est if truth.defects is None else est & (truth.defects == 0)
+    if not scored.any():
         raise EstimationError(f"{out_dir}: the gain map has no estimated pixel")
-    result = scores(k[..., 0], est, first.data[..., 0], truth)
+    result = {**scores(k[..., 0], scored, first.data[..., 0], truth), "estimated_percent": 100.0 * float(est.mean())}
     n_fit = len(report.inputs) - (1 if report.holdout else 0)  # one frame is held out to check k
-    bound = residual_bound_percent(truth, est, n_fit)
-    deciles = confidence_deciles(k[..., 0], truth.gain, sigma_from_confidence(confidence), est)
-    return {**result, "residual_bound_percent": bound, "bound_frames": n_fit, "confidence_deciles": deciles,
-            "plane_residual_fpn_percent": plane_residuals(k[..., 0], est, truth.gain, attrs.get(ATTR_CFA))}
+    bound = residual_bound_percent(truth, scored, n_fit)
+    deciles = confidence_deciles(k[..., 0], truth.gain, sigma_from_confidence(confidence), scored)
+    result.update(residual_bound_percent=bound, bound_frames=n_fit, confidence_deciles=deciles,
+                  plane_residual_fpn_percent=plane_residuals(k[..., 0], scored, truth.gain, attrs.get(ATTR_CFA)))
+    if truth.defects is not None:
+        result["defects"] = defect_counts(truth.defects, planes.get("defect"), est)
+    return result
+
+
+def defect_counts(truth: np.ndarray, written: np.ndarray | None, est: np.ndarray) -> dict:
+    """Per kind of defect in the ``truth`` (codes of :data:`solve.defects.KINDS`): how many photosites,
+    how many of them the map's ``written`` defect channel codes defective (any kind), and how many it
+    gave a gain (``est``: confidence above 0); and how many healthy photosites it codes defective."""
+    flagged = np.zeros(truth.shape, bool) if written is None else written != 0
+    counts = {kind: {"true": int(np.count_nonzero(truth == code)),
+                     "flagged": int(np.count_nonzero((truth == code) & flagged)),
+                     "given_a_gain": int(np.count_nonzero((truth == code) & est))}
+              for kind, code in KINDS.items()}
+    return {**counts, "healthy_flagged": int(np.count_nonzero((truth == 0) & flagged))}
 
 
 def plane_residuals(k: np.ndarray, est: np.ndarray, gain: np.ndarray, cfa: str | None) -> dict:
