@@ -65,14 +65,21 @@ def test_confidence_deciles_are_one_when_sigma_is_the_error_spread_and_scale_wit
     assert confidence_deciles(k, gain, sigma, np.zeros(sigma.shape, bool)) == []
 
 
-def test_evaluate_reports_the_bound_and_the_estimate_does_not_pass_it(tmp_path):
-    # a 12-bit RGGB burst (sample_data's): 1 % pixel FPN, 8 frames, one held out to check
+def _evaluated(tmp_path, *simulate):
+    """A burst simulated with the ``simulate`` options, estimated (one worker) and evaluated by the CLI:
+    its folder, the estimate's and the evaluation's CLI result."""
     runner = CliRunner()
     sim, out = tmp_path / "sim", tmp_path / "out"
-    assert runner.invoke(main, ["simulate", str(sim), "--preset", "raw12", "--size", "160x128", "--frames", "8",
-                                "--seed", "2"]).exit_code == 0
+    assert runner.invoke(main, ["simulate", str(sim), *simulate]).exit_code == 0
     assert runner.invoke(main, ["estimate", str(sim), "-o", str(out), "--quiet", "--workers", "1"]).exit_code == 0
     result = runner.invoke(main, ["evaluate", str(out), "--truth", str(sim)])
+    assert result.exit_code == 0, result.output
+    return sim, out, result
+
+
+def test_evaluate_reports_the_bound_and_the_estimate_does_not_pass_it(tmp_path):
+    # a 12-bit RGGB burst (sample_data's): 1 % pixel FPN, 8 frames, one held out to check
+    sim, out, result = _evaluated(tmp_path, "--preset", "raw12", "--size", "160x128", "--frames", "8", "--seed", "2")
     assert "Cramer-Rao bound" in result.output
     scores = json.loads((out / "evaluation.json").read_text())
     assert scores["bound_frames"] == 7
@@ -100,13 +107,7 @@ def test_evaluate_scores_the_healthy_photosites_and_counts_the_defects_apart(tmp
     from gainfpn_cli.solve.defects import KINDS
     from gainfpn_cli.solve.result import sigma_from_confidence
 
-    runner = CliRunner()
-    sim, out = tmp_path / "sim", tmp_path / "out"
-    assert runner.invoke(main, ["simulate", str(sim), "--size", "128x96", "--frames", "6", "--seed", "4",
-                                "--defects", "0.02"]).exit_code == 0
-    assert runner.invoke(main, ["estimate", str(sim), "-o", str(out), "--quiet", "--workers", "1"]).exit_code == 0
-    result = runner.invoke(main, ["evaluate", str(out), "--truth", str(sim)])
-    assert result.exit_code == 0, result.output
+    sim, out, result = _evaluated(tmp_path, "--size", "128x96", "--frames", "6", "--seed", "4", "--defects", "0.02")
     scores = json.loads((out / "evaluation.json").read_text())
     truth = load_truth(sim)
     planes, _ = read_exr_planes(out / "gain_map.exr")
