@@ -13,7 +13,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 from scipy import ndimage
 
-from gainfpn_cli import metrics
+from gainfpn_cli import metrics, pipeline
 from gainfpn_cli.geometry.resample import positions
 from gainfpn_cli.geometry.warps import GlobalWarp
 from gainfpn_cli.parallel import single_threaded_math
@@ -240,6 +240,8 @@ def test_estimate_with_the_scene_method(tmp_path, preset, size):
     planes = report["planes"]
     assert sorted(planes) == (["Y"] if preset == "paper" else ["B@11", "G@01", "G@10", "R@00"])
     assert all(p["method"] == "scene" and p["confidence_calibrated"] for p in planes.values())
+    # forced on a mosaic, the report says what the hold-out check cannot show there
+    assert (pipeline.SCENE_ON_MOSAIC in report["warnings"]) == (preset == "raw12")
     if preset == "paper":
         run_cli("evaluate", out, "--truth", sim, "-q")  # reads the report's scene stats back
         scores = json.loads((out / "evaluation.json").read_text())
