@@ -267,7 +267,7 @@ def _noise_probe(fit, a, unpull, rng, opt) -> tuple[np.ndarray, np.ndarray, int]
     use = fit.weight > 0
     probe = np.where(use, rng.standard_normal(fit.y.size) * np.sqrt(fit.variance), 0.0)
     path, its = gauss_newton_path(fit.A, fit.weight, probe, fit.predicted, a, fit.s, opt, priors=False,
-                                  stops=PROBE_STOPS)
+                                  stops=PROBE_STOPS, lam=fit.lam)
     moved, left = [], []
     for _, da, seen in path:  # da and fitted are left at the last stop's
         fitted = probe - np.tile(a, n_frames) * seen - fit.predicted * np.tile(da, n_frames)
@@ -298,8 +298,8 @@ def _gain_response(fit, a, est, unpull, rng, opt) -> tuple[np.ndarray, int]:
     n_frames = fit.y.size // n
     pattern = rng.choice([-1.0, 1.0], size=n) * a
     drive = np.where(fit.weight > 0, np.tile(pattern, n_frames) * fit.predicted, 0.0)
-    _, given, its = gauss_newton_step(fit.A, fit.weight, drive, fit.predicted, a, fit.s, opt,
-                                      priors=False)
+    _, given, its = gauss_newton_step(fit.A, fit.weight, drive, fit.predicted, a, fit.s, opt, priors=False,
+                                      lam=fit.lam)
     given = (given * unpull * pattern).reshape(est.shape)
     total = window_sum(np.where(est, pattern.reshape(est.shape) ** 2, 0.0), 9)
     response = np.divide(window_sum(np.where(est, given, 0.0), 9), total, out=np.ones(est.shape), where=total > 0)

@@ -137,6 +137,7 @@ class SceneFit:
     A: Sampling
     iterations: int
     points: list
+    lam: float = 0.0  # the last step's smoothness weight (smoothness_weight of its weights)
 
 
 def fit_tile(tile: Tile) -> SceneFit | None:
@@ -218,13 +219,14 @@ def fit_tile(tile: Tile) -> SceneFit | None:
         weight = valid / variance
         if step > 0 and opt.robust_scale is not None:
             weight /= 1.0 + residual**2 / (opt.robust_scale**2 * variance)
-        ds, da, its = gauss_newton_step(A, weight, residual, predicted, a, s, opt)
+        lam = smoothness_weight(weight, opt)
+        ds, da, its = gauss_newton_step(A, weight, residual, predicted, a, s, opt, lam=lam)
         s += ds
         a += da
         iterations += its
         step += 1
     return SceneFit(y, valid, predicted, a, s, weight, variance, residual, fitted, exposure, est, A, iterations,
-                    points)
+                    points, lam)
 
 
 
@@ -256,19 +258,27 @@ def gain_information(weight, predicted, n: int) -> np.ndarray:
     return (weight * predicted**2).reshape(-1, n).sum(axis=0)
 
 
+def smoothness_weight(weight, opt) -> float:
+    """The weight of the scene's squared gradient in a step with reading ``weight``s: ``opt.smoothness``
+    times the median positive one's."""
+    return opt.smoothness * float(np.median(weight[weight > 0]))
+
+
 def gauss_newton_step(A: Sampling, weight, residual, predicted, a, s, opt, *, priors: bool = True,
-                      iterations: int | None = None):
+                      iterations: int | None = None, lam: float | None = None):
     """One Gauss-Newton step ``(ds, da)`` of the weighted squares plus priors, ``a`` eliminated, and
     the conjugate-gradient iterations it took. ``priors=False``: the step's response to ``residual``
     alone (the priors' pull towards their centres left out, their weight kept). ``iterations``:
-    the conjugate-gradient cap if not ``opt.cg_iterations``."""
+    the conjugate-gradient cap if not ``opt.cg_iterations``; ``lam``: :func:`smoothness_weight` of
+    ``weight`` if already known."""
     steps, its = gauss_newton_path(A, weight, residual, predicted, a, s, opt, priors=priors,
-                                   stops=(opt.cg_iterations if iterations is None else iterations,))
+                                   stops=(opt.cg_iterations if iterations is None else iterations,), lam=lam)
     ds, da, _ = steps[-1]
     return ds, da, its
 
 
-def gauss_newton_path(A: Sampling, weight, residual, predicted, a, s, opt, *, priors: bool, stops: tuple[int, ...]):
+def gauss_newton_path(A: Sampling, weight, residual, predicted, a, s, opt, *, priors: bool, stops: tuple[int, ...],
+                      lam: float | None = None):
     """:func:`gauss_newton_step` as its conjugate gradients go: the step ``(ds, da, A ds)`` (the last:
     the change of the readings' scene) after each of ``stops`` iterations (increasing; the last is the
     cap, and a solve that converged before a stop gives its final step there), and the iterations
@@ -276,7 +286,7 @@ def gauss_newton_path(A: Sampling, weight, residual, predicted, a, s, opt, *, pr
     n = a.size
     repeat = residual.size // n
     at = np.tile(a, repeat)
-    lam = opt.smoothness * float(np.median(weight[weight > 0]))
+    lam = smoothness_weight(weight, opt) if lam is None else lam
     prior = 1.0 / opt.gain_prior**2
     wr = weight * residual
     grad_s = A.back(at * wr)
