@@ -69,32 +69,76 @@ def refine_frames(forward, s, predicted, a, y, valid, noise, shape, *, scale: in
     return moves, gains, material
 
 
-@compiled
+#: The quadratic basis's exponents ``(i, j)`` of ``u^i v^j``, the 15 monomials of degree up to 4 its
+#: products make (in :func:`_moments`' order), and where each product of two basis functions falls.
+_BASIS = ((0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2))
+_MONOMIALS = tuple((i - j, j) for i in range(5) for j in range(i + 1))
+_PRODUCT = np.array([[_MONOMIALS.index((b[0] + c[0], b[1] + c[1])) for c in _BASIS] for b in _BASIS])
+
+
 def _normal_equations(ax, ay, ap, weight, residual, u, v, H, g):
     """Add one frame's weighted normal equations ``J^T W J`` and ``J^T W r`` to ``H`` and ``g``: per
     reading the Jacobian row is the quadratic basis ``1, u, v, u^2, uv, v^2`` times the slopes
-    ``ax``, then times ``ay``, then the level ``ap`` (the exposure)."""
-    m = 6
-    j = np.empty(2 * m + 1)
-    for i in range(weight.size):
-        w = weight[i]
-        if w == 0.0:
-            continue
-        j[0], j[1], j[2] = 1.0, u[i], v[i]
-        j[3], j[4], j[5] = u[i] * u[i], u[i] * v[i], v[i] * v[i]
-        for c in range(m):
-            j[m + c] = ay[i] * j[c]
-            j[c] = ax[i] * j[c]
-        j[2 * m] = ap[i]
-        wr = w * residual[i]
-        for c in range(2 * m + 1):
-            wc = w * j[c]
-            g[c] += j[c] * wr
-            for d in range(c, 2 * m + 1):
-                H[c, d] += wc * j[d]
-    for c in range(2 * m + 1):
-        for d in range(c):
-            H[c, d] = H[d, c]
+    ``ax``, then times ``ay``, then the level ``ap`` (the exposure).
+
+    A block of ``J^T W J`` between two slopes sums products of two basis functions, monomials of
+    degree up to 4: the readings' weighted moments are summed (:func:`_moments`), 81 sums instead of
+    the 104 of each row's products, and over chunks of readings, which vectorises (2.3 against 4.7
+    ms for 160 000 readings, one run)."""
+    moments, rows = np.zeros((3, 15)), np.zeros((6, 6))
+    _moments(ax, ay, ap, weight, residual, u, v, moments, rows)
+    xx, xy, yy = (m[_PRODUCT] for m in moments)
+    H += np.block([[xx, xy, rows[0][:, None]], [xy, yy, rows[1][:, None]],
+                   [rows[0][None, :], rows[1][None, :], rows[2][:1, None]]])
+    g += np.concatenate([rows[3], rows[4], rows[5][:1]])
+
+
+#: Readings per chunk of :func:`_moments` (their factors fit in the first-level cache).
+_CHUNK = 64
+
+
+@compiled
+def _moments(ax, ay, ap, weight, residual, u, v, moments, rows):
+    """The sums of :func:`_normal_equations` into ``moments`` (3, 15): ``w ax^2``, ``w ax ay`` and
+    ``w ay^2`` times each monomial of :data:`_MONOMIALS`; and ``rows`` (6, 6): ``w ax ap``, ``w ay
+    ap``, ``w ap^2``, ``w r ax``, ``w r ay`` and ``w r ap`` times each basis function (the third and
+    the last only their first column is used)."""
+    chunk = _CHUNK
+    q = np.zeros((9, chunk))
+    mono = np.zeros((15, chunk))
+    for start in range(0, weight.size, chunk):
+        m = min(chunk, weight.size - start)
+        for j in range(m):
+            i = start + j
+            w, x, y = weight[i], u[i], v[i]
+            if w == 0.0:  # a reading not used: its slopes need not be finite
+                for a in range(9):
+                    q[a, j] = 0.0
+                continue
+            xx, xy, yy = x * x, x * y, y * y
+            mono[0, j], mono[1, j], mono[2, j], mono[3, j], mono[4, j], mono[5, j] = 1.0, x, y, xx, xy, yy
+            mono[6, j], mono[7, j], mono[8, j], mono[9, j] = x * xx, y * xx, x * yy, y * yy
+            mono[10, j], mono[11, j], mono[12, j], mono[13, j], mono[14, j] = xx * xx, xx * xy, xx * yy, xy * yy, \
+                yy * yy
+            wx, wy, wr = w * ax[i], w * ay[i], w * residual[i]
+            q[0, j], q[1, j], q[2, j] = wx * ax[i], wx * ay[i], wy * ay[i]
+            q[3, j], q[4, j], q[5, j] = wx * ap[i], wy * ap[i], w * ap[i] * ap[i]
+            q[6, j], q[7, j], q[8, j] = wr * ax[i], wr * ay[i], wr * ap[i]
+        for j in range(m, chunk):  # the last chunk's unused places weigh nothing
+            for a in range(9):
+                q[a, j] = 0.0
+        for a in range(3):
+            for k in range(15):
+                total = 0.0
+                for j in range(chunk):
+                    total += q[a, j] * mono[k, j]
+                moments[a, k] += total
+        for a in range(6):
+            for k in range(6):
+                total = 0.0
+                for j in range(chunk):
+                    total += q[3 + a, j] * mono[k, j]
+                rows[a, k] += total
 
 
 def rms_move(moves: np.ndarray):
