@@ -101,8 +101,8 @@ _CHUNK = 64
 def _moments(ax, ay, ap, weight, residual, u, v, moments, rows):
     """The sums of :func:`_normal_equations` into ``moments`` (3, 15): ``w ax^2``, ``w ax ay`` and
     ``w ay^2`` times each monomial of :data:`_MONOMIALS`; and ``rows`` (6, 6): ``w ax ap``, ``w ay
-    ap``, ``w ap^2``, ``w r ax``, ``w r ay`` and ``w r ap`` times each basis function (the third and
-    the last only their first column is used)."""
+    ap``, ``w ap^2``, ``w r ax``, ``w r ay`` and ``w r ap`` times each basis function (of the third
+    and the last, only the first column is used)."""
     chunk = _CHUNK
     q = np.zeros((9, chunk))
     mono = np.zeros((15, chunk))

@@ -121,7 +121,8 @@ class SceneFit:
     relative to the readings', the sampling operator, the CG iterations and where each frame's
     pixels see the first frame's grid, as refined against the model (``(pixels, 2)`` (x, y) per
     frame, tile px): the registration the fit used, plus any significant move below materiality
-    that the refinement after its last step found (reported, not fitted)."""
+    that the refinement after its last step found (reported, not fitted); and the last step's
+    smoothness weight, which the solves that calibrate the fit's confidence take up."""
 
     y: np.ndarray
     valid: np.ndarray
@@ -137,7 +138,7 @@ class SceneFit:
     A: Sampling
     iterations: int
     points: list
-    lam: float = 0.0  # the last step's smoothness weight (smoothness_weight of its weights)
+    lam: float  # the last step's smoothness weight (smoothness_weight of its weights)
 
 
 def fit_tile(tile: Tile) -> SceneFit | None:
