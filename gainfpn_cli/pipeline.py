@@ -107,8 +107,8 @@ def estimate(burst: LoadedBurst, cfg: Config, *, progress: Progress | None = Non
     speed and bit-identical results."""
     from .parallel import single_threaded_math
 
-    solver = solving.Solver.from_config(cfg.solver, mosaic=burst.cfa is not None, executor=executor)
-    solver = dataclasses.replace(solver, defects=cfg.input.defects)
+    solver = solving.Solver.from_config(cfg.solver, mosaic=burst.cfa is not None, defects=cfg.input.defects,
+                                        executor=executor)
     with single_threaded_math():
         return _estimate(burst, cfg, solver, progress)
 

@@ -55,7 +55,7 @@ class Solver:
     defects: bool = False  # photosites the scene model shows hot are left out (defective.offset_shown)
 
     @classmethod
-    def from_config(cls, s, *, mosaic: bool, executor=None) -> "Solver":
+    def from_config(cls, s, *, mosaic: bool, defects: bool = False, executor=None) -> "Solver":
         accurate = AccurateOptions(kernel=s.interpolation, anchors=s.anchors, partners=s.partners, rtol=s.rtol,
                                    gauge_sigma=s.gauge_sigma, tile=s.tile, robust_rounds=s.robust_rounds,
                                    gain_range=s.gain_range,
@@ -64,7 +64,7 @@ class Solver:
                              gain_range=s.gain_range)
         return cls(s.method, SolveOptions(lam=s.lam, max_condition=s.max_condition, k_range=s.gain_range),
                    s.block_size, accurate, scene, None if s.fpn_model == "auto" else s.fpn_model, s.gain_range,
-                   s.workers, executor)
+                   s.workers, executor, defects=defects)
 
     @property
     def calibrated(self) -> bool:
