@@ -142,9 +142,10 @@ def solve_planes(burst, frames, excluded, exposures, used: slice, in_frame, solv
     ``split`` measures the accurate solver's sigma_k and pixel FPN of each plane with two more fits, on
     the even and the odd frames of ``used`` (on :func:`central` regions, and with
     :data:`MIN_SPLIT_FRAMES` or more; with fewer, its sigma_k on the burst the scene model predicts:
-    :func:`bootstrapped`; the scene solver's sigma_k is measured by its noise probe, and halves of a
-    burst are too few frames for its latent scene), and ``calibrations`` (plane name -> Calibration)
-    gives them as measured before."""
+    :func:`bootstrapped`, which also sets the least the halves' factors are outside a CFA mosaic; the
+    scene solver's sigma_k is measured by its noise probe, and halves of a burst are too few frames
+    for its latent scene), and ``calibrations`` (plane name -> Calibration) gives them as measured
+    before."""
     k, confidence, solved, hot = solve_raw(burst, frames, excluded, exposures, used, in_frame, solver, progress,
                                            regions=regions)
     if solver.method == "accurate":  # the scene solver counts readings at black itself (docs/method.md 8b)
@@ -159,11 +160,16 @@ def solve_planes(burst, frames, excluded, exposures, used: slice, in_frame, solv
         calibrations = bootstrapped(burst, frames, excluded, exposures, used, in_frame, solver, progress, k,
                                     confidence)
     measures = {}
-    if halves is not None and calibrations is None and solver.calibrated and burst.cfa:  # a mosaic's, to pool
+    if halves is not None and calibrations is None and solver.calibrated:
         measures = {name: measure(pick(k), pick(confidence), Halves(*(pick(m) for half in halves for m in half)))
                     for name, pick, _ in plane_views(burst.cfa, burst.channels) if name in solved}
-        pooled = pooled_priors({name: m.calibration for name, m in measures.items()})
-        measures = {name: dataclasses.replace(m, calibration=pooled[name]) for name, m in measures.items()}
+        if burst.cfa:  # a mosaic's priors, pooled
+            pooled = pooled_priors({name: m.calibration for name, m in measures.items()})
+            measures = {name: dataclasses.replace(m, calibration=pooled[name]) for name, m in measures.items()}
+        else:  # the error both halves make alike, as the burst the scene model predicts shows it
+            floors = bootstrapped(burst, frames, excluded, exposures, used, in_frame, solver, progress, k, confidence)
+            measures = {name: dataclasses.replace(m, calibration=bootstrap.raised(m.calibration, floors.get(name)))
+                        for name, m in measures.items()}
     reports, calibrated = {}, {}
     for name, pick, _ in plane_views(burst.cfa, burst.channels):  # the gauge and the FPN model, plane by plane
         if name not in solved:  # its grid has no region: k = 1, confidence 0
@@ -203,8 +209,8 @@ def bootstrapped(burst, frames, excluded, exposures, used: slice, in_frame, solv
     burst the scene model fitted to the frames ``used`` predicts (:mod:`solve.bootstrap`), on the
     :func:`central` regions; ``k`` and ``confidence`` are the fit's, frame-shaped. Planes with too few
     pixels measured, and a CFA mosaic's (whose colour planes' latent scene is still aliased: docs/method.md
-    section 8b), are not in it: their sigma_k is the solver's own, as every plane's if a region's predicted
-    burst cannot be fitted again."""
+    section 8b), are not in it: their sigma_k is the halves' or the solver's own, as every plane's if a
+    region's predicted burst cannot be fitted again."""
     if burst.cfa is not None:
         return {}
     regions = central(burst, frames, solver)

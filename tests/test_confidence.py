@@ -19,10 +19,10 @@ RAW12 = PRESETS["raw12"]
 MARGIN = 8  # px left out at the border, where trajectories leave the frame
 
 
-def _estimate(sensor, n_frames, method="auto", **kwargs):
+def _estimate(sensor, n_frames, method="auto", preset=None, **kwargs):
     burst = simulate_burst(sensor=sensor, n_frames=n_frames, **kwargs)
     frames = burst.frames.astype(np.float32) - sensor.black_level
-    result = api.estimate(frames, cfa=sensor.cfa, saturation=sensor.white_level - sensor.black_level,
+    result = api.estimate(frames, cfa=sensor.cfa, saturation=sensor.white_level - sensor.black_level, preset=preset,
                           **{"solver.workers": 2, "solver.method": method})  # bit-identical to 1 worker
     return result, burst
 
@@ -117,5 +117,19 @@ def test_a_bright_smooth_burst_counts_the_band_no_fit_estimates(seed):
     # halves' shared error by deciles of the pixel's own sigma_k read the FPN it slices as error (0.61x)
     result, burst = _estimate(PRESETS["paper"], 8, shape=(240, 320), scene="procedural", seed=seed)
     assert all(p.method == "accurate" and p.confidence_calibrated for p in result.report.planes.values())
+    ratios = _deciles(result, burst)
+    assert all(0.75 <= r <= 1.25 for r in ratios), ratios
+
+
+@pytest.mark.parametrize("seed", [1, pytest.param(4, marks=pytest.mark.slow)])
+def test_sixteen_frames_count_the_error_both_halves_make_alike(seed):
+    # `balanced` (cubic, 3 partners) on a bright smooth 8-bit burst of 16 frames: k's error beyond the noise (the
+    # pairwise model's on the scene's detail, the motion estimate's) is about as large as the noise's and much
+    # the same in both halves, which their Hausman difference does not see. With the halves alone the least precise tenth erred 2.10x (seed 1) and 1.62x
+    # (seed 4) the written sigma_k, the other tenths 1.12-1.30x; with the factors raised to those the burst the
+    # scene model predicts measures, 1.16x and 1.17x (seeds 1-6: 1.12-1.30x, docs/limits.md "Confidence")
+    result, burst = _estimate(PRESETS["paper"], 16, "accurate", "balanced", shape=(240, 320), scene="procedural",
+                              seed=seed)
+    assert all(p.confidence_calibrated for p in result.report.planes.values())
     ratios = _deciles(result, burst)
     assert all(0.75 <= r <= 1.25 for r in ratios), ratios
