@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 from scipy import ndimage
 
 from gainfpn_cli import metrics, pipeline
-from gainfpn_cli.geometry.resample import positions
+from gainfpn_cli.geometry.resample import positions, window_sum
 from gainfpn_cli.geometry.warps import GlobalWarp
 from gainfpn_cli.parallel import single_threaded_math
 from gainfpn_cli.sim.sensor import PRESETS
@@ -478,3 +478,14 @@ def test_offset_scores_are_zero_where_the_scene_is_flat_and_shrunk_where_the_mod
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         np.testing.assert_array_equal(offset_scores(fit, np.zeros((40, 50))), plain)
+
+
+def test_residual_excess_on_a_colour_plane_is_the_windows_own():
+    # a CFA colour plane's excess is its aliased detail's misfit where it is (prior_dof 0): each 5x5
+    # window's own ratio, 1 where a window holds no reading
+    data, probe = _residual_sums(np.full((40, 40), 1.5), readings=8, dof=0.5, seed=3)
+    probe[:12, :12] = data[:12, :12] = 0
+    excess = scene._excess(data, probe, np.zeros((40, 40), bool), prior_dof=0.0)
+    own = window_sum(data, 5)[20:, 20:] / window_sum(probe, 5)[20:, 20:]
+    np.testing.assert_allclose(excess[20:, 20:], own, rtol=1e-6)
+    assert np.all(excess[:9, :9] == 1.0)
