@@ -2,6 +2,8 @@
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from gainfpn_cli.solve.bootstrap import calibration, raised
 from gainfpn_cli.solve.halves import Calibration
@@ -26,14 +28,30 @@ def test_too_few_pixels_measure_nothing():
 
 
 def test_the_model_burst_raises_the_halves_factors_and_keeps_their_prior():
-    # the halves read 0.8 / 1.0 / 1.3 at sigma 0.2 / 0.4 / 0.8 %; the model's burst 1.1 / 1.2 from 0.3 to 0.6 %:
-    # each halves' factor rises to the model's at its own sigma (interpolated in log sigma, the end
-    # ones beyond), never falls
-    halves = Calibration(np.log([0.002, 0.004, 0.008]), np.array([0.8, 1.0, 1.3]), 2.5e-3, prior_se=1e-4)
-    floor = Calibration(np.log([0.003, 0.006]), np.array([1.1, 1.2]), None)
+    # the halves read 0.8 at 0.2 / 0.4 / 0.8 %, the model's burst 1.0 / 1.5 / 1.6 at 0.3 / 0.5 / 1.0 %: raised
+    # only at the halves' own sigma_k, the lines between them gave 1.37 at 0.5 % and 1.57 at 1.0 %
+    halves = Calibration(np.log([0.002, 0.004, 0.008]), np.full(3, 0.8), 2.5e-3, prior_se=1e-4)
+    floor = Calibration(np.log([0.003, 0.005, 0.010]), np.array([1.0, 1.5, 1.6]), None)
     got = raised(halves, floor)
-    np.testing.assert_allclose(got.factor, [1.1, 1.1 + 0.1 * np.log(4 / 3) / np.log(2), 1.3])
+    np.testing.assert_allclose(got.sigma(np.array([0.005, 0.01, 0.02], np.float32)), [0.0075, 0.016, 0.032],
+                               rtol=1e-6)
     assert (got.prior, got.prior_se, got.measured) == (2.5e-3, 1e-4, True)
     assert raised(halves, None) is halves
     assert raised(None, floor) is floor  # halves that measured too few pixels
     assert raised(Calibration(np.zeros(1), np.ones(1), 2e-3, measured=False), floor) is floor
+
+
+_grid = st.lists(st.floats(-8.0, -2.0), min_size=1, max_size=10, unique=True).map(sorted)
+
+
+@given(at_a=_grid, at_b=_grid, data=st.data())
+def test_the_raised_factor_is_at_least_both_at_every_sigma(at_a, at_b, data):
+    factors = [np.array(data.draw(st.lists(st.floats(0.1, 3.0), min_size=len(at), max_size=len(at))))
+               for at in (at_a, at_b)]
+    halves, floor = Calibration(np.array(at_a), factors[0], 1e-4), Calibration(np.array(at_b), factors[1], None)
+    sigma = np.exp(np.linspace(-9.0, -1.0, 400)).astype(np.float32)
+    got = raised(halves, floor).sigma(sigma)
+    assert np.all(got >= np.maximum(halves.sigma(sigma), floor.sigma(sigma)) * (1 - 1e-6))
+    at = np.exp(np.union1d(at_a, at_b)).astype(np.float32)  # and no higher than the larger where measured
+    np.testing.assert_allclose(raised(halves, floor).sigma(at), np.maximum(halves.sigma(at), floor.sigma(at)),
+                               rtol=1e-5)

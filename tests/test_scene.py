@@ -482,10 +482,12 @@ def test_offset_scores_are_zero_where_the_scene_is_flat_and_shrunk_where_the_mod
 
 def test_residual_excess_on_a_colour_plane_is_the_windows_own():
     # a CFA colour plane's excess is its aliased detail's misfit where it is (prior_dof 0): each 5x5
-    # window's own ratio, 1 where a window holds no reading
-    data, probe = _residual_sums(np.full((40, 40), 1.5), readings=8, dof=0.5, seed=3)
-    probe[:12, :12] = data[:12, :12] = 0
-    excess = scene._excess(data, probe, np.zeros((40, 40), bool), prior_dof=0.0)
-    own = window_sum(data, 5)[20:, 20:] / window_sum(probe, 5)[20:, 20:]
-    np.testing.assert_allclose(excess[20:, 20:], own, rtol=1e-6)
-    assert np.all(excess[:9, :9] == 1.0)
+    # window's own ratio, 1 where a window holds no reading (a hole inside the tile, where the box
+    # filter's running sums leave rounding, not 0)
+    data, probe = (123.456 * s.astype(np.float64) for s in  # float64 sums, as the solver's
+                   _residual_sums(np.full((96, 96), 1.5), readings=8, dof=0.5, seed=3))
+    probe[48:80, 48:80] = data[48:80, 48:80] = 0
+    excess = scene._excess(data, probe, np.zeros((96, 96), bool), prior_dof=0.0)
+    own = window_sum(data, 5)[:40] / window_sum(probe, 5)[:40]
+    np.testing.assert_allclose(excess[:40], own, rtol=1e-9)
+    assert np.all(excess[50:78, 50:78] == 1.0)

@@ -105,9 +105,10 @@ def calibration(sigma: np.ndarray, error: np.ndarray, mask: np.ndarray) -> Calib
 
 
 def raised(calibration: Calibration | None, floor: Calibration | None) -> Calibration | None:
-    """The halves' ``calibration`` with each factor at least ``floor``'s at the same ``sigma_k`` (the one
-    :func:`calibration` measures on the burst the scene model predicts), its prior kept; ``floor``
-    itself where the halves measured nothing. The halves' Hausman difference misses what both halves
+    """The halves' ``calibration`` with its factor at least ``floor``'s at every ``sigma_k`` (the one
+    :func:`calibration` measures on the burst the scene model predicts): the larger of the two at each
+    sigma_k either measured at, so that the lines :meth:`Calibration.sigma` draws between them are
+    above both; its prior kept; ``floor`` itself where the halves measured nothing. The halves' Hausman difference misses what both halves
     err alike (the pairwise model's error on the scene's detail, the motion estimate's), and so read
     factors under 1 where k erred 1.3-1.6x the solver's ``sigma_k``; the model's burst never reads
     under 1 and holds the first (not the second: it is rendered and fitted with the same warps). On
@@ -117,5 +118,7 @@ def raised(calibration: Calibration | None, floor: Calibration | None) -> Calibr
         return calibration
     if calibration is None or not calibration.measured:
         return floor
-    at = np.interp(calibration.log_sigma, floor.log_sigma, floor.factor)
-    return dataclasses.replace(calibration, factor=np.maximum(calibration.factor, at))
+    at = np.union1d(calibration.log_sigma, floor.log_sigma)
+    factor = np.maximum(np.interp(at, calibration.log_sigma, calibration.factor),
+                        np.interp(at, floor.log_sigma, floor.factor))
+    return dataclasses.replace(calibration, log_sigma=at, factor=factor)

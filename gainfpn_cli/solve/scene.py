@@ -403,5 +403,7 @@ def _excess(actual, expected, at_black, own: bool = True, prior_dof: float = EXC
     broad = np.divide(window_sum(actual, EXCESS_BROAD) - own_actual, broad_expected, out=np.ones(actual.shape),
                       where=broad_expected > 0)
     pooled = local_expected + prior_dof
-    excess = np.divide(local_actual + prior_dof * broad, pooled, out=np.ones(actual.shape), where=pooled > 0)
+    # a window without readings sums to the box filter's rounding (about 1e-15 of the sums), not 0
+    empty = 1e-9 * float(np.max(pooled, initial=0.0))
+    excess = np.divide(local_actual + prior_dof * broad, pooled, out=np.ones(actual.shape), where=pooled > empty)
     return np.where(window_sum(at_black.astype(np.float32), EXCESS_WINDOW) > 0, np.maximum(excess, 1.0), excess)
