@@ -67,9 +67,10 @@ def test_with_five_frames_it_is_measured_on_the_burst_the_scene_model_predicts(s
     assert all(0.75 <= r <= 1.25 for r in ratios), ratios
 
 
-def test_the_model_burst_measures_the_same_on_one_and_two_workers():
-    burst = simulate_burst(sensor=PRESETS["paper"], n_frames=5, shape=(96, 128), exposure=0.75, scene="dead-leaves",
-                           seed=6)
+@pytest.mark.parametrize("n_frames", [5, 9])  # 4 fitted frames: the model's burst alone; 8: with halves
+def test_the_model_burst_measures_the_same_on_one_and_two_workers(n_frames):
+    burst = simulate_burst(sensor=PRESETS["paper"], n_frames=n_frames, shape=(96, 128), exposure=0.75,
+                           scene="dead-leaves", seed=6)
     runs = [api.estimate(burst.frames.astype(np.float32), saturation=255,
                          **{"solver.workers": workers, "solver.method": "accurate"})
             for workers in (1, 2)]
