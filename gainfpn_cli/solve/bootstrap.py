@@ -108,12 +108,14 @@ def raised(calibration: Calibration | None, floor: Calibration | None) -> Calibr
     """The halves' ``calibration`` with its factor at least ``floor``'s at every ``sigma_k`` (the one
     :func:`calibration` measures on the burst the scene model predicts): the larger of the two at each
     sigma_k either measured at, so that the lines :meth:`Calibration.sigma` draws between them are
-    above both; its prior kept; ``floor`` itself where the halves measured nothing. The halves' Hausman difference misses what both halves
-    err alike (the pairwise model's error on the scene's detail, the motion estimate's), and so read
-    factors under 1 where k erred 1.3-1.6x the solver's ``sigma_k``; the model's burst never reads
-    under 1 and holds the first (not the second: it is rendered and fitted with the same warps). On
-    640x480 8-bit bursts of 16 frames (`balanced`) the least precise tenth erred 1.32x what the
-    halves stated, raised 0.99x (docs/limits.md, "Confidence")."""
+    above both; its prior kept; ``floor`` itself where the halves measured nothing.
+
+    The halves' Hausman difference misses what both halves err alike (the pairwise model's error on
+    the scene's detail, the motion estimate's), and so read factors under 1 where k erred 1.3-1.6x
+    the solver's ``sigma_k``; the model's burst never reads under 1 and holds the first (not the
+    second: it is rendered and fitted with the same warps). On 640x480 8-bit bursts of 16 frames
+    (`balanced`) the least precise tenth erred 1.32x what the halves stated, raised 0.99x
+    (docs/limits.md, "Confidence")."""
     if floor is None:
         return calibration
     if calibration is None or not calibration.measured:
