@@ -50,8 +50,8 @@ def test_the_raised_factor_is_at_least_both_at_every_sigma(at_a, at_b, data):
                for at in (at_a, at_b)]
     halves, floor = Calibration(np.array(at_a), factors[0], 1e-4), Calibration(np.array(at_b), factors[1], None)
     sigma = np.exp(np.linspace(-9.0, -1.0, 400)).astype(np.float32)
-    got = raised(halves, floor).sigma(sigma)
-    assert np.all(got >= np.maximum(halves.sigma(sigma), floor.sigma(sigma)) * (1 - 1e-6))
+    got = raised(halves, floor)
+    assert np.all(got.sigma(sigma) >= np.maximum(halves.sigma(sigma), floor.sigma(sigma)) * (1 - 1e-6))
     at = np.exp(np.union1d(at_a, at_b)).astype(np.float32)  # and no higher than the larger where measured
-    np.testing.assert_allclose(raised(halves, floor).sigma(at), np.maximum(halves.sigma(at), floor.sigma(at)),
+    np.testing.assert_allclose(got.sigma(at), np.maximum(halves.sigma(at), floor.sigma(at)),
                                rtol=1e-5)
