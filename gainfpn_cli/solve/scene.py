@@ -107,6 +107,13 @@ class SceneOptions:
     refine_px: float = 0.05
     refine_exposure: float = 0.002
 
+    @property
+    def colour_plane(self) -> bool:
+        """The grid is a CFA colour plane (its photosites every other grid pixel: ``aperture`` below 1),
+        whose latent scene is still aliased: its misfit is neither refined away as a misregistration
+        nor its residual excess shrunk towards a broader window's."""
+        return self.aperture < 1
+
 
 def solve_scene(frames, motion, *, options: SceneOptions = SceneOptions(), saturation=None, excluded=None,
                 exposures=None, workers: int = 2, progress=None, executor=None) -> GainResult:
@@ -187,7 +194,7 @@ def _solve_tile(tile: Tile) -> tuple[np.ndarray, np.ndarray, int, np.ndarray]:
     black = (tile.frames <= 0) & seen
     at_black = black.any(axis=0)
     actual, expected = _residual_sums(fit, fitted, (h, w))
-    prior_dof = EXCESS_PRIOR_DOF if opt.aperture == 1 else 0.0  # see EXCESS_PRIOR_DOF
+    prior_dof = 0.0 if opt.colour_plane else EXCESS_PRIOR_DOF  # see EXCESS_PRIOR_DOF
     sigma_k = _sigma(da, _excess(actual, expected, at_black, prior_dof=prior_dof), a, est)
     # ... and the share of their gain that readings near black do not see, times the gains' spread
     censored = _censored_per_pixel(fit, black, seen, a)

@@ -166,7 +166,7 @@ def fit_tile(tile: Tile) -> SceneFit | None:
     # a plane sampled every other photosite (aperture below 1) is aliased enough that its misfit
     # looks like a misregistration: refined there, readings the model explains exactly lost
     # 0.0025 -> 0.028 % and raw12 bursts gained nothing (tests/test_scene.py, docs/method.md)
-    refine = opt.refine_frames and opt.aperture == 1
+    refine = opt.refine_frames and not opt.colour_plane
     step, first_moves, restarted = 0, None, False
     while True:
         small = None  # this round's significant moves below materiality, after the last step
