@@ -52,6 +52,8 @@ def test_the_raised_factor_is_at_least_both_at_every_sigma(at_a, at_b, data):
     sigma = np.exp(np.linspace(-9.0, -1.0, 400)).astype(np.float32)
     got = raised(halves, floor)
     assert np.all(got.sigma(sigma) >= np.maximum(halves.sigma(sigma), floor.sigma(sigma)) * (1 - 1e-6))
-    at = np.exp(np.union1d(at_a, at_b)).astype(np.float32)  # and no higher than the larger where measured
-    np.testing.assert_allclose(got.sigma(at), np.maximum(halves.sigma(at), floor.sigma(at)),
-                               rtol=1e-5)
+    # and no higher than the larger where either was measured: checked on the points themselves (sigma_k
+    # in float32 lands a hair off them, where a steep line between two close points moves the factor)
+    np.testing.assert_array_equal(got.log_sigma, np.union1d(at_a, at_b))
+    larger = [max(np.interp(x, at_a, factors[0]), np.interp(x, at_b, factors[1])) for x in got.log_sigma]
+    np.testing.assert_allclose(got.factor, larger, rtol=1e-12)
