@@ -191,12 +191,12 @@ def test_a_plane_that_learned_the_aliasing_every_pair_shares_is_not_kept(shape, 
         assert not kept or left < had, (name, left, had)
 
 
-@pytest.mark.parametrize("seed, exposure, first_ratio_below_1", [(15, 0.3, True), (3, 0.08, False)])
+@pytest.mark.parametrize("seed, exposure, first_ratio_below_1", [(9, 0.3, True), (3, 0.08, False)])
 def test_a_check_too_small_to_decide_looks_again_on_a_region_twice_as_wide(monkeypatch, seed, exposure,
                                                                           first_ratio_below_1):
-    # dark 12-bit 128x160 bursts: on the central 48 px seed 15's check is below 1 but not by 2 standard
-    # errors (0.909 +- 0.049), on 96 px it is (0.788 +- 0.022). A first look above 1 (seed 3 at 8 %
-    # exposure: 1.005 +- 0.020) is not looked at again. (Of seeds 0-31 at 30 % exposure, 3 are undecided
+    # dark 12-bit 128x160 bursts: on the central 48 px seed 9's check is below 1 but not by 2 standard
+    # errors (0.913 +- 0.048), on 96 px it is (0.909 +- 0.028). A first look above 1 (seed 3 at 8 %
+    # exposure: 1.005 +- 0.020) is not looked at again. (Of seeds 0-39 at 30 % exposure, 5 are undecided
     # on 48 px and none reads above 1.)
     b = simulate_burst(shape=(128, 160), n_frames=7, sensor=MONO12, exposure=exposure, scene="dead-leaves",
                        seed=seed)
