@@ -85,17 +85,18 @@ def fit(partners=8, seed=3):
     from gainfpn_cli.solve import accurate
 
     options = accurate.AccurateOptions(partners=partners, robust_rounds=1 if partners < 8 else 2)
-    confidence = accurate._confidence
+    fractions = accurate._fit_fractions
+    raw = lambda pairs, valid, shape: (np.ones(shape), np.ones(shape))  # noqa: E731 (nothing restored)
     for n in (3, 4, 5, 6, 8, 12):
         b = simulate_burst(shape=(240, 320), n_frames=n, exposure=0.075, seed=seed)
         fr = b.frames.astype(np.float32) - b.sensor.black_level
         row = dict(frames=n, partners=partners)
         for name, restored in (("ratio", True), ("ratio_raw", False)):
-            accurate._confidence = lambda *a, restored=restored: confidence(*a[:5], a[5] if restored else None)
+            accurate._fit_fractions = fractions if restored else raw
             try:
                 r = accurate.solve_accurate(fr, b.homographies, options=options, saturation=b.saturation, workers=2)
             finally:
-                accurate._confidence = confidence
+                accurate._fit_fractions = fractions
             use = (r.confidence > 0) & interior_mask(fr.shape[1:], 16)
             row[name] = round(confidence_deciles(r.k, b.gain, sigma_from_confidence(r.confidence), use, parts=1)[0], 3)
         m = 1.0 / (1 + min(partners, n - 1))
