@@ -204,7 +204,7 @@ class SolverConfig:
         "photosites whose mean reading is less than this many times its noise (measured on the burst) are not "
         "solved: k = 1, confidence 0 (0 = every photosite above black)",
     )
-    workers: int = _key(2, positive_int, "processes that solve blocks in parallel")
+    workers: int = _key(2, positive_int, "processes that solve blocks in parallel, and threads of the defect search")
     max_condition: float = _key(
         1e4, positive_float, "a block system worse conditioned than this gets the smallest ridge that fixes it"
     )

@@ -154,7 +154,8 @@ def _estimate(burst: LoadedBurst, cfg: Config, solver: solving.Solver, progress:
     if cfg.input.defects or cfg.solver.min_snr > 0:  # the search measures the readings' noise too
         t0 = time.perf_counter()
         found = defective.find(frames, burst.cfa, burst.channels, excluded=excluded, exposures=exposures,
-                               warp=in_frame, saturation=burst.saturation, dark_hot=burst.dark_hot)
+                               warp=in_frame, saturation=burst.saturation, dark_hot=burst.dark_hot,
+                               threads=cfg.solver.workers)  # the workers' CPUs, idle until the solve
         codes = found.codes if cfg.input.defects else None
         if cfg.solver.min_snr > 0:
             floors = darkness.floors(found.noise, cfg.solver.min_snr, burst.saturation)

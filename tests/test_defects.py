@@ -182,6 +182,31 @@ def test_strips_of_rows_change_nothing(monkeypatch):
     assert np.count_nonzero(whole) > 100 and np.array_equal(_codes(burst, MONO), whole)
 
 
+@pytest.mark.parametrize("sensor", [MONO, RAW12])
+def test_threads_change_nothing(monkeypatch, sensor):
+    # the statistics along the frames run a strip of rows a thread, the nearest readings a band of
+    # rows a thread: on any number of threads, the same codes and noise (here several strips a thread,
+    # frames of different exposures)
+    burst = simulate_burst(shape=(120, 160), n_frames=6, sensor=sensor, scene="dead-leaves", exposure=0.15,
+                           exposure_jitter=0.1, defects=0.01, seed=3)
+    frames = (burst.frames.astype(np.float32) - sensor.black_level)[..., None]
+    monkeypatch.setattr(stacks, "STRIP_READINGS", 7 * 6 * 160)
+    found = [defective.find(frames, sensor.cfa, ("Y",), excluded=None, exposures=burst.exposures,
+                            warp=GlobalWarp(burst.homographies), saturation=burst.saturation, threads=threads)
+             for threads in (1, 2, 3)]
+    assert np.count_nonzero(found[0].codes) > 100
+    for other in found[1:]:
+        np.testing.assert_array_equal(other.codes, found[0].codes)
+        assert other.noise == found[0].noise
+
+
+def test_each_strip_keeps_the_order_on_threads():
+    shape = (4, 1000, 50)
+    expected = [(rows.start, rows.stop) for rows in stacks.strips(shape, parts=2 ** 20 // 200)]
+    got = stacks.each_strip(lambda rows: (rows.start, rows.stop), shape, parts=2 ** 20 // 400, threads=2)
+    assert got == expected and len(got) > 10
+
+
 def test_too_few_frames_find_nothing():
     burst = simulate_burst(shape=(64, 80), n_frames=D.MIN_FRAMES - 1, defects=0.01, seed=1)
     assert not _codes(burst, PRESETS["paper"]).any()
@@ -314,3 +339,10 @@ def test_nan_median_is_numpys(stack):
     got = stacks.nan_median(stack)
     assert got.dtype == expected.dtype
     np.testing.assert_array_equal(got, expected)
+
+
+def test_nan_median_on_threads_is_the_same(monkeypatch):
+    monkeypatch.setattr(stacks, "STRIP_READINGS", 5 * 7 * 30)  # 7 rows a strip, 3 a thread's
+    stack = np.random.default_rng(1).normal(size=(5, 100, 30)).astype(np.float32)
+    stack[stack > 1.5] = np.nan
+    np.testing.assert_array_equal(stacks.nan_median(stack, threads=2), stacks.nan_median(stack))

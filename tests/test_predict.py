@@ -52,6 +52,18 @@ def test_a_photosite_never_predicts_itself():
     assert valid[0, 20, 20] and x[0, 20, 20] < 200  # from frames 2 and 3, not from frame 1
 
 
+@pytest.mark.parametrize("threads", [2, 3, 200])
+def test_bands_of_rows_on_threads_find_the_same_readings(threads):
+    # each frame's rows are searched in bands, one a thread (more threads than rows: one row each)
+    burst = simulate_burst(shape=(60, 80), n_frames=6, sensor=PRESETS["paper"], seed=3)
+    frames, warp = burst.frames.astype(np.float32), GlobalWarp(burst.homographies)
+    x, valid = predict.nearest_along(frames, _everywhere, warp)
+    x_threads, valid_threads = predict.nearest_along(frames, _everywhere, warp, threads=threads)
+    assert valid.mean() > 0.8
+    np.testing.assert_array_equal(valid_threads, valid)
+    np.testing.assert_array_equal(x_threads, x)
+
+
 class _AsMaps:
     """A warp whose pairs are position maps ``(h, w, 2)`` (as a field or layered warp's), here those
     of ``warp``'s homographies."""

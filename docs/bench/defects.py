@@ -9,6 +9,7 @@
     python docs/bench/defects.py model    # hot ones found by the scene model's offset test, by hotz's bins
     python docs/bench/defects.py model photos  # healthy photosites that test flags on photographs
     python docs/bench/defects.py model scores  # the healthy photosites' scores of that test
+    python docs/bench/defects.py threads  # the search's time on 1 and 2 threads, 2000x1500x8 (same codes)
 
 Per sensor preset, scene, exposure and frame count: the percentage of each simulated kind
 flagged (in parentheses: flagged as that kind), over two 240x320 bursts with 0.5 % defects; and
@@ -230,7 +231,30 @@ def photographs(scenes=PHOTOS, seeds=(40, 41)):
                   f"hot / dead / stuck {kinds[1:]}", flush=True)
 
 
-if __name__ == "__main__" and sys.argv[1:] == ["photos"]:
+def threads(shape=(1500, 2000), n=8, rounds=2):
+    """Seconds of the search (every plane, true motion, 0.2 % defects, frames of different exposures)
+    on 1 and 2 threads, alternating, and whether the codes and noise models are the same."""
+    for preset in ("paper", "raw12"):
+        sensor = PRESETS[preset]
+        b = simulate_burst(shape=shape, n_frames=n, sensor=sensor, scene="dead-leaves", defects=0.002, seed=1,
+                           exposure_jitter=0.02)
+        frames = (b.frames.astype(np.float32) - sensor.black_level)[..., None]
+        warp = GlobalWarp(b.homographies)
+        D.survey(frames[:, :64, :64, 0], warp)  # compiled before the clock starts
+        seen = {}
+        for threads in (1, 2) * rounds:
+            t0 = time.perf_counter()
+            found = [D.survey(pick(frames), warp.conjugate(S), saturation=b.saturation, exposures=b.exposures,
+                              threads=threads) for _, pick, S in plane_views(sensor.cfa, ("Y",))]
+            seconds = time.perf_counter() - t0
+            result = [(f.codes.tobytes(), f.noise) for f in found]
+            same = seen.setdefault("result", result) == result
+            print(f"{preset:6s} {threads} thread(s): {seconds:.2f} s, the same as on one: {same}", flush=True)
+
+
+if __name__ == "__main__" and sys.argv[1:] == ["threads"]:
+    threads()
+elif __name__ == "__main__" and sys.argv[1:] == ["photos"]:
     photographs()
 elif __name__ == "__main__" and sys.argv[1:] == ["predict"]:
     for preset in ("raw12", "paper"):

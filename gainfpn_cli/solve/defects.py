@@ -28,8 +28,8 @@ Kinds, in the order they are tested (:data:`KINDS` gives the codes of ``gain_map
   every frame (:func:`_dark_scores`, ``< -Z_DEFECT``, and below ``-Z_DEFECT / 2`` against the
   sharper prediction: beside a bright edge the median's error fakes both);
 * ``stuck``: one reading (to a quantisation step) in every frame, where a healthy photosite's
-  would vary more than :data:`QUANTISED_STEPS` quantisation steps, by more than 1 /
-  :data:`STUCK_SPREAD` times as much (in RMS) (the smaller of its 8 neighbours' and the scene's
+  would vary more than :data:`stuck.QUANTISED_STEPS` quantisation steps, by more than 1 /
+  :data:`stuck.STUCK_SPREAD` times as much (in RMS) (the smaller of its 8 neighbours' and the scene's
   along its trajectory plus the noise at its level), unless both the reading and the scene are
   about black;
 * ``hot``: a response far above the plane's, ``z > Z_DEFECT`` (``BORDER_Z`` times that where
@@ -50,7 +50,6 @@ error scatters a healthy photosite's readings as much (docs/limits.md).
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -60,8 +59,9 @@ from ..metrics import MAD_TO_SIGMA
 from .noise import NoiseModel
 from .noise import fit as fit_noise
 from .noise import level_and_scatter
-from .predict import nearest_along, ring_median, scene_along
-from .stacks import Relative, nan_median, strips
+from .predict import nearest_along, scene_along
+from .stacks import Relative, each_strip, nan_median
+from .stuck import quantisation_step, stuck_photosites
 from .tiling import power_of_two_scale
 
 #: Codes of the ``defect`` channel of ``gain_map.exr``: 0 is a healthy photosite.
@@ -74,11 +74,6 @@ DEAD_RESPONSE = 0.25
 #: prediction misses reads dark in some frames only (a dead one reads its noise, which at the
 #: lowest level tested, MIN_LEVEL, is up to ~0.3 of it).
 DEAD_CEILING = 0.5
-#: Readings whose RMS spread over the frames is below this fraction of a healthy photosite's are stuck.
-STUCK_SPREAD = 0.02
-#: ... tested only where a healthy one's is above this many quantisation steps (RMS): with
-#: less, a healthy photosite often reads one count in every frame.
-QUANTISED_STEPS = 3.0
 #: Score (in standard deviations) past which a response is a defect's: the tails are heavier than
 #: a Gaussian's (prediction errors at edges). Measured on 6 defect-free 240x320 raw12 dead-leaves
 #: bursts (true motion, 8 frames, seeds 10-15): 6 flagged 0-0.13e-4 of the healthy photosites, 7
@@ -131,9 +126,9 @@ SAFE_PEAK = (2.0**-32, 2.0**32)
 
 
 def detect(frames: np.ndarray, warp, *, saturation: float | None = None,
-           excluded: np.ndarray | None = None, exposures: np.ndarray | None = None) -> np.ndarray:
+           excluded: np.ndarray | None = None, exposures: np.ndarray | None = None, threads: int = 1) -> np.ndarray:
     """Defect code of every photosite of one plane, ``(H, W)`` uint8 (:data:`KINDS`): :func:`survey`'s."""
-    return survey(frames, warp, saturation=saturation, excluded=excluded, exposures=exposures).codes
+    return survey(frames, warp, saturation=saturation, excluded=excluded, exposures=exposures, threads=threads).codes
 
 
 @dataclass(frozen=True)
@@ -146,14 +141,16 @@ class Survey:
 
 
 def survey(frames: np.ndarray, warp, *, saturation: float | None = None,
-           excluded: np.ndarray | None = None, exposures: np.ndarray | None = None) -> Survey:
+           excluded: np.ndarray | None = None, exposures: np.ndarray | None = None, threads: int = 1) -> Survey:
     """The defects of one plane and the noise of its readings.
 
     ``frames`` ``(F, H, W)`` are as read (black subtracted); ``exposures`` ``(F,)``, each frame's
     exposure relative to the reference's, brings them to the reference's (a stuck photosite reads
     one value as read, not after). ``warp`` maps between their grids (``pair(s, t,
     region)``, :mod:`geometry.warps`), ``excluded`` ``(F, H, W)`` marks readings that do not follow
-    it (moving objects). Fewer than :data:`MIN_FRAMES` frames: all healthy, noise unknown.
+    it (moving objects). Fewer than :data:`MIN_FRAMES` frames: all healthy, noise unknown. The
+    statistics along the frames run a strip of rows at a time on ``threads`` threads (the same
+    result on any number).
     """
     read = np.asarray(frames, np.float32)
     peak, unit = float(np.max(read[0], initial=0.0)), 1.0
@@ -171,8 +168,8 @@ def survey(frames: np.ndarray, warp, *, saturation: float | None = None,
         below = frame < (np.inf if saturation is None else saturation)
         return below if excluded is None else below & ~excluded[t]
 
-    x, valid, from_frames = scene_along(frames, good, warp)
-    step = _quantisation_step(read)
+    x, valid, from_frames = scene_along(frames, good, warp, threads=threads)
+    step = quantisation_step(read)
     # (the masked copy sorted in place: one copy of the stack's valid readings, not two)
     floor = max(MIN_LEVEL * float(np.quantile(x[valid], 0.99, overwrite_input=True)) if valid.any() else 0.0,
                 LEVEL_STEPS * step)
@@ -180,7 +177,7 @@ def survey(frames: np.ndarray, warp, *, saturation: float | None = None,
     always = valid.all(axis=0)  # every reading usable as far as the frames and the motion go
     from_frames &= valid  # (in place: no third stack) the valid readings the other frames predict
     del valid  # frame-stack-sized, as usable and from_frames are
-    response, scatter, n, lowest, highest, level = _responses(frames, x, usable)
+    response, scatter, n, lowest, highest, level = _responses(frames, x, usable, threads)
     tested = n >= MIN_FRAMES
     if not tested.any():
         return Survey(codes, None)
@@ -190,22 +187,22 @@ def survey(frames: np.ndarray, warp, *, saturation: float | None = None,
     z = _scores(response, typical, spread, scatter, n, tested)
     dead = tested & (response < DEAD_RESPONSE * typical) & (highest < DEAD_CEILING * typical) & (z < -Z_DEFECT)
     whole = usable.all(axis=0) & ~dead
-    noise = fit_noise(*level_and_scatter(frames, x, response, whole), n_frames)
-    stuck = _stuck(frames, read, always, x, typical, noise, step, floor)
+    noise = fit_noise(*level_and_scatter(frames, x, response, whole, threads=threads), n_frames)
+    stuck = stuck_photosites(frames, read, always, x, typical, noise, step, floor, threads)
     usable &= from_frames  # from here on, only readings the other frames predict
     # where the scene is too dark for a response: readings far above it, or below it, in every frame (at
     # Z_DEFECT: on defect-free 144x176 bursts of 5-7 frames 0-3 more flags per 253 440 photosites)
-    dim = _dark_scores(frames, x, from_frames, usable, typical, plane_spread, noise)
+    dim = _dark_scores(frames, x, from_frames, usable, typical, plane_spread, noise, threads)
     # a response's own scatter at least the rounding's: near black, where most readings of a photosite
     # are one count, their median absolute deviation can be 0
     rounding = step / np.sqrt(12) / np.maximum(level, 1e-30)
     z = _scores(response, typical, spread, np.maximum(scatter, rounding), n, tested)
     hot = (z > np.where(usable.sum(axis=0) >= MIN_FRAMES, Z_DEFECT, BORDER_Z * Z_DEFECT)) & (lowest > typical)
     if n_frames >= MIN_FIT_FRAMES:
-        hot |= _offset_scores(frames, x, usable, typical, plane_spread, scatter, noise) > Z_OFFSET
+        hot |= _offset_scores(frames, x, usable, typical, plane_spread, scatter, noise, threads) > Z_OFFSET
     # (the stacks and planes no longer needed: the sharper prediction's in their place)
     del x, usable, from_frames, response, scatter, lowest, highest, level, z, rounding, spread
-    sharp = _sharp_tests(frames, good, warp, floor, noise, typical, plane_spread, stuck)
+    sharp = _sharp_tests(frames, good, warp, floor, noise, typical, plane_spread, stuck, threads)
     # beside a bright edge the median's error fakes a dead response and a dim photosite's readings
     # far from its scene; the sharper prediction's, less than half of it there, seldom: each is
     # confirmed by it, a dim one at half the score (that prediction is the noisier: at the full
@@ -247,52 +244,58 @@ class _Sharp(NamedTuple):
 
 
 def _sharp_tests(frames, good, warp, floor: float, noise, plane_typical: float, plane_spread: float,
-                 asked: np.ndarray) -> _Sharp:
+                 asked: np.ndarray, threads: int = 1) -> _Sharp:
     """The tests that the median prediction's error beside a sharp edge of an aliased plane spoils,
     against the sharper prediction (:func:`predict.nearest_along`, less than half its error):
     it fakes a dead photosite's response, and a dim one's readings far from the scene
     (:func:`_dark_scores`), where this one does not; and it hides offsets (:func:`_offset_scores`)
     that this one shows. Over the readings above ``floor``, as the median's; whether the scene is
     above it along the trajectory, at the photosites ``asked`` (those read as stuck)."""
-    x, valid = nearest_along(frames, good, warp)
+    x, valid = nearest_along(frames, good, warp, threads=threads)
     usable = x > floor
     usable &= valid
-    dim = _dark_scores(frames, x, valid, usable, plane_typical, plane_spread, noise)
+    dim = _dark_scores(frames, x, valid, usable, plane_typical, plane_spread, noise, threads)
     seen = valid.sum(axis=0) >= MIN_FRAMES  # (not tested there: too dark for a response)
     lit = ~seen
     lit[asked] |= nan_median(np.where(valid[:, asked], x[:, asked], np.float32(np.nan))) > floor
     del valid
-    response, scatter, n, *_ = _responses(frames, x, usable)
+    response, scatter, n, *_ = _responses(frames, x, usable, threads)
     tested = n >= MIN_FRAMES
     if not tested.any():
         return _Sharp(np.zeros(tested.shape), dim, ~seen, lit)  # (no response: no offset either)
     typical, spread, _ = _robust_spread(response, tested)
     fit = frames.shape[0] >= MIN_FIT_FRAMES
-    offsets = _offset_scores(frames, x, usable, typical, spread, scatter, noise) if fit else None
+    offsets = _offset_scores(frames, x, usable, typical, spread, scatter, noise, threads) if fit else None
     return _Sharp(offsets, dim, ~seen | (tested & (response < DEAD_RESPONSE * typical)), lit)
 
 
-def _responses(y: np.ndarray, x: np.ndarray, usable: np.ndarray) -> tuple[np.ndarray, ...]:
+def _responses(y: np.ndarray, x: np.ndarray, usable: np.ndarray, threads: int = 1) -> tuple[np.ndarray, ...]:
     """Per photosite: the median over frames of ``y / x``, its robust scatter, the count, the
-    lowest, the highest, and the mean ``x`` (a strip at a time: :func:`stacks.strips`)."""
+    lowest, the highest, and the mean ``x`` (a strip at a time on ``threads`` threads:
+    :func:`stacks.each_strip`)."""
     out = [np.zeros(y.shape[1:], np.float32) for _ in range(5)]
-    for rows in strips(y.shape):
+
+    def work(rows):
         with np.errstate(divide="ignore", invalid="ignore"):
             ratio = np.where(usable[:, rows], y[:, rows] / x[:, rows], np.float32(np.nan))
         response = nan_median(ratio)
         scatter = MAD_TO_SIGMA * nan_median(np.abs(ratio - response[None]))
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)  # no usable frame: NaN
-            parts = (response, scatter, np.nanmin(ratio, axis=0), np.nanmax(ratio, axis=0),
-                     np.nanmean(np.where(usable[:, rows], x[:, rows], np.float32(np.nan)), axis=0))
+        # np.nanmin's, np.nanmax's and np.nanmean's results (NaN where no frame is usable), without
+        # their warnings, whose filters are not the thread's own as NumPy's error state is
+        level = np.where(usable[:, rows], x[:, rows], np.float32(0)).sum(axis=0)
+        with np.errstate(invalid="ignore"):
+            np.true_divide(level, usable[:, rows].sum(axis=0, dtype=np.intp), out=level, casting="unsafe")
+        parts = (response, scatter, np.fmin.reduce(ratio, axis=0), np.fmax.reduce(ratio, axis=0), level)
         for whole, part in zip(out, parts):
             whole[rows] = np.nan_to_num(part)
+
+    each_strip(work, y.shape, threads=threads)
     response, scatter, lowest, highest, level = out
     return response, scatter, usable.sum(axis=0), lowest, highest, level
 
 
 def _offset_scores(y: np.ndarray, x: np.ndarray, fitted: np.ndarray, typical: float, spread: float,
-                   scatter: np.ndarray, noise) -> np.ndarray:
+                   scatter: np.ndarray, noise, threads: int = 1) -> np.ndarray:
     """Per photosite, the offset ``b`` of ``y_t = a x_t + b`` fitted to its readings in the frames
     ``fitted``, over its standard error, in units of the plane's (and where larger its 5x5
     neighbourhood's) robust spread of that score; 0 where fewer than :data:`MIN_FIT_FRAMES` are
@@ -302,17 +305,21 @@ def _offset_scores(y: np.ndarray, x: np.ndarray, fitted: np.ndarray, typical: fl
     prediction's error around it (the 5x5 median of the ratios' ``scatter`` over the frames times
     the level); the frames are Cauchy-weighted by their residuals about a robust start (the
     plane's gain, the median offset), and the error is scaled up by the fit's own scatter where
-    that is larger. A quarter strip at a time (:func:`stacks.strips`)."""
+    that is larger. A quarter strip at a time on ``threads`` threads (:func:`stacks.each_strip`)."""
     count = fitted.sum(axis=0)
     level = np.zeros(count.shape, np.float32)
-    for rows in strips(y.shape):
+
+    def mean_level(rows):
         level[rows] = np.where(fitted[:, rows], x[:, rows], 0).sum(axis=0) / np.maximum(count[rows], 1)
+
+    each_strip(mean_level, y.shape, threads=threads)
     var = np.maximum(noise(level), _local_median(scatter * level) ** 2).astype(np.float32)
     root_weight = 1.0 / np.sqrt(np.maximum(var, 1e-12))  # noise-free data: no zero division
     prior = 1.0 / max(spread, 1e-6) ** 2
     score = np.zeros(count.shape)
     tested = count >= MIN_FIT_FRAMES
-    for rows in strips(y.shape, parts=4):  # a dozen temporaries of a strip's stack
+
+    def fit(rows):  # a dozen temporaries of a quarter strip's stack
         # (fewer frames: no fit, whose 2x2 system from one frame would be cancellation's noise)
         use = fitted[:, rows] & tested[rows]
         ys, xs = np.where(use, y[:, rows], np.float32(0)), np.where(use, x[:, rows], np.float32(0))
@@ -332,6 +339,8 @@ def _offset_scores(y: np.ndarray, x: np.ndarray, fitted: np.ndarray, typical: fl
         own = CAUCHY_SCALE**2 * (u * u / (1 + u * u)).sum(0, np.float64) / np.maximum(count[rows] - 2, 1)
         variance = 1.0 / s1 + mx * mx / sxx  # b's, in units of the readings' weights
         score[rows] = b / np.sqrt(variance * np.maximum(own / CAUCHY_CONSISTENCY, 1.0))
+
+    each_strip(fit, y.shape, parts=4, threads=threads)
     if not tested.any():
         return np.zeros(count.shape)
     centre, _, scale = _robust_spread(score, tested)
@@ -342,7 +351,7 @@ def _offset_scores(y: np.ndarray, x: np.ndarray, fitted: np.ndarray, typical: fl
 
 
 def _dark_scores(y: np.ndarray, x: np.ndarray, valid: np.ndarray, usable: np.ndarray, typical: float,
-                 spread: float, noise) -> np.ndarray:
+                 spread: float, noise, threads: int = 1) -> np.ndarray:
     """Per photosite, its readings' mean excess over the healthy response ``typical x_t`` in the
     ``valid`` frames not ``usable`` (where the scene is too dark for a ratio), over its standard
     error (negative for a deficit): the noise at the brightest of those frames' levels over the
@@ -353,17 +362,21 @@ def _dark_scores(y: np.ndarray, x: np.ndarray, valid: np.ndarray, usable: np.nda
     (or all below) their healthy response. A stuck or hot photosite in a black region reads far
     above what any healthy one there can (a stuck reading of 200 where the scene gives 3 counts),
     a dead one below it in every frame (0 where the scene gives 3-5 counts)."""
-    # two passes a strip at a time: a plane's temporaries, not a stack's (12 MP x 16 frames)
+    # two passes a strip at a time (on ``threads`` threads): a plane's temporaries, not a stack's
     overall = np.zeros(y.shape[1:], np.float32)
-    for rows in strips(y.shape):
+
+    def mean_excess(rows):
         known = valid[:, rows]
         seen = known.sum(axis=0)
         total = np.where(known, y[:, rows] - typical * x[:, rows], np.float32(0)).sum(axis=0)
         overall[rows] = np.where(seen >= MIN_FRAMES, np.abs(total) / np.maximum(seen, 1), 0)
+
+    each_strip(mean_excess, y.shape, threads=threads)
     around = (MAD_TO_SIGMA * _local_median(overall)).astype(np.float32)
-    del overall
+    overall = None  # let go (a plane; the pass's closure holds its cell)
     score = np.zeros(y.shape[1:], np.float32)
-    for rows in strips(y.shape):
+
+    def dim_score(rows):
         use = valid[:, rows] & ~usable[:, rows]
         count = use.sum(axis=0)
         over = y[:, rows] - typical * x[:, rows]
@@ -374,6 +387,8 @@ def _dark_scores(y: np.ndarray, x: np.ndarray, valid: np.ndarray, usable: np.nda
         own = np.sqrt(noise(np.maximum(brightest, 0.0)) / np.maximum(count, 1) + (spread * brightest) ** 2)
         sure = (count >= MIN_FRAMES) & ((lowest > 0) | (highest < 0))
         score[rows] = np.where(sure, excess / np.maximum(np.maximum(own, around[rows]), 1e-12), 0.0)
+
+    each_strip(dim_score, y.shape, threads=threads)
     return score
 
 
@@ -392,49 +407,6 @@ def _robust_spread(values: np.ndarray, tested: np.ndarray) -> tuple[float, float
     del deviation
     around *= MAD_TO_SIGMA
     return centre, spread, np.maximum(spread, around, out=around)
-
-
-def _stuck(frames: np.ndarray, read: np.ndarray, whole: np.ndarray, x: np.ndarray, typical: float, noise,
-           step: float, floor: float) -> np.ndarray:
-    """Photosites whose readings (unsaturated and following the motion in every frame) vary far
-    less than a healthy one's would, where that is well past quantisation. A healthy one's
-    variance is the smaller of two estimates, each too large somewhere: the median of its 8
-    neighbours' (too large beside an edge) and the scene's along its trajectory plus the noise
-    at its level (the noise model takes in the prediction's error on aliased planes). And that
-    read one value, to a quantisation step, in every frame: beside an edge the prediction misses
-    (a border) both estimates can be far too large for a healthy photosite, whose readings still
-    vary by its temporal noise. ``read`` are the ``frames`` as read (before the exposures were
-    divided out), where a stuck photosite's readings are one value; ``whole``, the photosites whose
-    every reading is usable (not saturated, following the motion, predicted). One value at or below
-    ``floor`` (about black) where the scene predicted along the trajectory is too (its median) is
-    not tested: a healthy photosite in a black region reads it too, and beside a bright edge both
-    estimates of its variance are far too large (on a 240x320 RGGB `astronaut` burst at 75 %, 75
-    of 76 800 photosites were flagged so)."""
-    stuck = np.zeros(whole.shape, bool)
-    at = np.nonzero(whole & (np.ptp(read, axis=0) <= step))  # the few that read one value: tested further
-    if not at[0].size:
-        return stuck
-    variance = np.empty(whole.shape, np.float32)
-    for rows in strips(read.shape):  # a strip's temporaries, not the stack's
-        variance[rows] = frames[:, rows].var(axis=0)
-    around, _ = ring_median(variance, whole, at)
-    spread = read[:, at[0], at[1]].var(axis=0)
-    seen = x[:, at[0], at[1]]
-    # robust: a prediction gone wrong in one frame (an edge) does not make the scene vary
-    middle = np.median(seen, axis=0)
-    scene = MAD_TO_SIGMA * np.median(np.abs(seen - middle[None]), axis=0)
-    expected = np.fmin(np.nan_to_num(around, nan=np.inf), (typical * scene) ** 2 + noise(np.maximum(middle, 0.0)))
-    lit = (read[0][at] > floor) | (middle > floor)
-    stuck[at] = lit & (expected > (QUANTISED_STEPS * step) ** 2) & (spread < STUCK_SPREAD**2 * expected)
-    return stuck
-
-
-def _quantisation_step(frames: np.ndarray) -> float:
-    """The smallest difference between distinct readings (of a sample): one count of integer
-    data, about 0 of continuous data."""
-    values = np.unique(frames.ravel()[:: max(1, frames.size // 200_000)])
-    steps = np.diff(values)
-    return float(steps[steps > 0].min()) if (steps > 0).any() else 0.0
 
 
 def _local_median(values: np.ndarray) -> np.ndarray:

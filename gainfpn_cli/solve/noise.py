@@ -9,7 +9,7 @@ from itertools import pairwise
 import numpy as np
 
 from ..metrics import chi2_quantile
-from .stacks import strips
+from .stacks import each_strip
 
 
 @dataclass(frozen=True)
@@ -57,14 +57,16 @@ def fit(level: np.ndarray, scatter: np.ndarray, n: int) -> NoiseModel:
     return NoiseModel(max(float(c0), 0.0), float(c1))
 
 
-def level_and_scatter(y: np.ndarray, x: np.ndarray, response: np.ndarray, where: np.ndarray):
+def level_and_scatter(y: np.ndarray, x: np.ndarray, response: np.ndarray, where: np.ndarray, *, threads: int = 1):
     """What :func:`fit` takes, from readings ``y`` ``(F, H, W)`` and the scene ``x`` predicted for
     them: at the photosites ``where``, the mean of ``x`` over the frames, and the variance (n - 1
-    degrees of freedom) of the readings about ``response`` times it (a strip of rows at a time)."""
-    level, scatter = [], []
-    for rows in strips(y.shape):
+    degrees of freedom) of the readings about ``response`` times it (a strip of rows at a time, on
+    ``threads`` threads)."""
+
+    def work(rows):
         inside = where[rows]
         xs = x[:, rows][:, inside]
-        level.append(xs.mean(axis=0))
-        scatter.append((y[:, rows][:, inside] - response[rows][inside][None] * xs).var(axis=0, ddof=1))
+        return xs.mean(axis=0), (y[:, rows][:, inside] - response[rows][inside][None] * xs).var(axis=0, ddof=1)
+
+    level, scatter = zip(*each_strip(work, y.shape, threads=threads))
     return np.concatenate(level), np.concatenate(scatter)

@@ -19,6 +19,8 @@ Two predictions, each best for its use:
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 
 from ..geometry.resample import sample, valid_samples
@@ -41,13 +43,14 @@ NEAREST = 2
 CANDIDATES = 8
 
 
-def scene_along(frames, good, warp) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def scene_along(frames, good, warp, *, threads: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``x, valid, from_frames`` ``(F, H, W)``: the scene each photosite sees in each frame, where
     it is known, and where it is predicted from the other frames: the median of the frames on the
     reference's grid brought back, or at the borders (fewer than :data:`MIN_SEEN` frames on the
     point) the median of the 8 neighbours in the frame. ``good(t, frames[t])`` gives frame ``t``'s
     usable readings (a frame at a time: a mask of the stack would be another 192 MB at 12 MP x
-    16 frames); ``warp.pair(s, t, region)`` maps frame ``s``'s pixels into frame ``t``."""
+    16 frames); ``warp.pair(s, t, region)`` maps frame ``s``'s pixels into frame ``t``. The median
+    runs on ``threads`` threads."""
     n_frames, h, w = frames.shape
     region = (0, 0, h, w)
     on_ref = np.full((n_frames, h, w), np.nan, np.float32)
@@ -56,7 +59,7 @@ def scene_along(frames, good, warp) -> tuple[np.ndarray, np.ndarray, np.ndarray]
         ok = valid_samples(good(t, frame), M, (h, w), kernel=KERNEL)
         on_ref[t][ok] = sample(frame, M, (h, w), kernel=KERNEL)[ok]
     seen = np.isfinite(on_ref).sum(axis=0) >= MIN_SEEN
-    scene = np.where(seen, nan_median(on_ref), 0).astype(np.float32)  # all-NaN points: not known
+    scene = np.where(seen, nan_median(on_ref, threads=threads), 0).astype(np.float32)  # all-NaN points: not known
     del on_ref
     x = np.empty(frames.shape, np.float32)
     valid = np.empty(frames.shape, bool)
@@ -75,29 +78,34 @@ def scene_along(frames, good, warp) -> tuple[np.ndarray, np.ndarray, np.ndarray]
     return x, valid, from_frames
 
 
-def nearest_along(frames, good, warp) -> tuple[np.ndarray, np.ndarray]:
+def nearest_along(frames, good, warp, *, threads: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """``x, valid`` ``(F, H, W)``: each photosite's scene in each frame ``t`` as the mean of the
     :data:`NEAREST` good readings, among up to :data:`CANDIDATES` other frames, of the photosites
     nearest the point (one a frame, as read: not interpolated), and where it is so predicted and the
     photosite's own reading is good. A frame whose nearest photosite to the point is the predicted
     photosite itself (no motion there) does not predict it: a defect would predict its own reading.
-    ``good`` and ``warp`` as :func:`scene_along`'s."""
+    ``good`` and ``warp`` as :func:`scene_along`'s. Each frame's rows are searched in ``threads``
+    bands at once (the compiled search releases the GIL)."""
     n_frames, h, w = frames.shape
     region = (0, 0, h, w)
     x = np.zeros(frames.shape, np.float32)
     valid = np.zeros(frames.shape, bool)
-    for t in range(n_frames):
-        distance = np.full((NEAREST, h, w), np.inf, np.float32)  # squared, ascending
-        value = np.zeros((NEAREST, h, w), np.float32)
-        for s in _candidates(t, n_frames):
-            M, frame = warp.pair(t, s, region), np.ascontiguousarray(frames[s], np.float32)
-            homography = M.shape == (3, 3)
-            _keep_nearest(np.asarray(M if homography else np.eye(3), np.float64),
-                          np.ascontiguousarray(np.empty((0, 0, 2)) if homography else M, np.float32),
-                          frame, np.ascontiguousarray(good(s, frame)), distance, value)
-        known = np.isfinite(distance[-1])
-        x[t] = np.where(known, value.mean(axis=0), 0.0)
-        valid[t] = known & good(t, frames[t])
+    cuts = np.linspace(0, h, max(min(threads, h), 1) + 1).astype(int)
+    bands = list(zip(cuts[:-1], cuts[1:]))
+    with ThreadPoolExecutor(len(bands)) as pool:
+        for t in range(n_frames):
+            distance = np.full((NEAREST, h, w), np.inf, np.float32)  # squared, ascending
+            value = np.zeros((NEAREST, h, w), np.float32)
+            for s in _candidates(t, n_frames):
+                M, frame = warp.pair(t, s, region), np.ascontiguousarray(frames[s], np.float32)
+                homography = M.shape == (3, 3)
+                H = np.asarray(M if homography else np.eye(3), np.float64)
+                moved = np.ascontiguousarray(np.empty((0, 0, 2)) if homography else M, np.float32)
+                usable = np.ascontiguousarray(good(s, frame))
+                list(pool.map(lambda band: _keep_nearest(H, moved, frame, usable, distance, value, *band), bands))
+            known = np.isfinite(distance[-1])
+            x[t] = np.where(known, value.mean(axis=0), 0.0)
+            valid[t] = known & good(t, frames[t])
     return x, valid
 
 
@@ -108,16 +116,16 @@ def _candidates(t: int, n_frames: int) -> list[int]:
 
 
 @compiled(fastmath=False)  # IEEE order: the same ranking on every machine
-def _keep_nearest(H, moved, frame, good, distance, value):
-    """Offer the readings of another ``frame`` ``(h, w)`` to the ascending lists ``distance``
-    (squared, from each pixel's position there to the photosite nearest it) and ``value``
-    ``(NEAREST, h, w)``, in place: at each pixel, that photosite's reading where it is ``good`` and
-    not the pixel itself. The positions are ``moved`` ``(h, w, 2)``, or where that is empty, the
-    homography ``H`` of each pixel ``(x, y)``."""
+def _keep_nearest(H, moved, frame, good, distance, value, first, last):
+    """Offer the readings of another ``frame`` to the ascending lists ``distance`` (squared, from
+    each pixel's position there to the photosite nearest it) and ``value`` ``(NEAREST, h, w)``, in
+    place, in the rows ``first`` to ``last`` (excluded): at each pixel, that photosite's reading
+    where it is ``good`` and not the pixel itself. The positions are ``moved`` ``(h, w, 2)``, or
+    where that is empty, the homography ``H`` of each pixel ``(x, y)``."""
     nearest, h, w = distance.shape
     fh, fw = frame.shape
     mapped = moved.shape[0] > 0
-    for i in range(h):
+    for i in range(first, last):
         den, nx, ny = H[2, 1] * i + H[2, 2], H[0, 1] * i + H[0, 2], H[1, 1] * i + H[1, 2]
         for j in range(w):
             if mapped:
