@@ -145,6 +145,20 @@ def test_warps_the_burst_follows_stay_where_they_are(noise):
             <= 1.05 * metrics.residual_fpn_percent(off.k, burst.gain, inner & (off.confidence > 0)))
 
 
+def test_without_refine_warps_the_warps_are_kept_and_the_exposures_refined():
+    # the model the bootstrap renders (solving.bootstrapped): sampled where the warps it is given say,
+    # which the accurate solver then fits with, its exposures still refined (frame 5's 3 % here)
+    frames, motion, _ = _model_burst()
+    told, scale = _off_model(motion, (0.3, -0.2), 0.0, 1.03)
+    options = dataclasses.replace(SceneOptions(), refine_warps=False)
+    fit = fit_tile(prepare({"frames": frames * scale, "motion": told}, options)[0])
+    given = _points(told, frames.shape[1:])
+    assert all(np.array_equal(p, q) for p, q in zip(fit.points, given))
+    assert abs(fit.exposure[5] / np.mean(np.delete(fit.exposure, 5)) - 1.03) < 0.005
+    refined = fit_tile(prepare({"frames": frames * scale, "motion": told}, SceneOptions())[0])
+    assert _worst_error(refined.points, given) > 0.1  # (as the scene solver does by default)
+
+
 @pytest.mark.parametrize("shift, share", [((0.04, -0.02), 0.4), ((0.0, 0.045), 0.3)])
 def test_misregistrations_below_refine_px_are_refined(shift, share):
     # one frame told 0.045 px off (under refine_px, which a step after the last must pass): refined
