@@ -104,9 +104,8 @@ def noise_bounded(burst, frames: np.ndarray, confidence: np.ndarray, noise: dict
         if model is None:
             continue
         c = pick(confidence)
-        black_near = window_sum(np.ascontiguousarray(pick(black)), DARK_WINDOW) > 0
-        left_out_near = window_sum((c <= 0).astype(np.float32), DARK_WINDOW) > 0
-        near = (black_near | left_out_near) & (c > 0)
+        marked = np.maximum(pick(black), c <= 0, dtype=np.float32)  # read black, or left unestimated
+        near = (window_sum(marked, DARK_WINDOW) > 0) & (c > 0)
         if not near.any():
             continue
         lv = np.maximum(pick(level)[near], np.finfo(np.float32).tiny)
