@@ -5,8 +5,8 @@ Each reading's row is the box mean of the linear spline through the scene sample
 outer product of ``m`` vertical and ``m`` horizontal weights placed at one corner of the fine grid.
 So a reading is stored as its corner and ``2 m`` weights (36 bytes at ``m = 4``) where a sparse
 matrix stores ``m^2`` weights and column indices (128 bytes), and the products, which are most of
-the scene solver's time, run as loops compiled by numba: on a 288 px tile of 8 frames 4.1 ms
-forward and 5.3 ms back, against 6.7 and 6.8 ms for scipy's float32 CSR products (``python
+the scene solver's time, run as loops compiled by numba: on a 288 px tile of 8 frames 3.3 ms
+forward and 3.7 ms back, against 13.0 and 12.3 ms for scipy's float32 CSR products (``python
 docs/bench/sampling.py``, one run). Weights are float32, sums float64.
 """
 
@@ -63,7 +63,7 @@ class Sampling:
             return out
         out = np.empty(self.corner.size) if out is None else out
         loop = _forward_three if self.wu.shape[1] == 3 else _forward_four
-        loop(self.corner, self.wu, self.wv, self.fine[1], np.asarray(v, np.float64), out)
+        loop(self.corner, self.wu, self.wv, np.uint64(self.fine[1]), np.asarray(v, np.float64), out)
         return out
 
     def back(self, r: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
@@ -112,7 +112,7 @@ class Sampling:
             return out
         out = np.zeros(self.shape[1]) if out is None else out
         loop = _back_three if wu.shape[1] == 3 else _back_four
-        loop(self.corner, wu, wv, self.fine[1], np.asarray(r, np.float64), out)
+        loop(self.corner, wu, wv, np.uint64(self.fine[1]), np.asarray(r, np.float64), out)
         return out
 
 
@@ -180,69 +180,73 @@ def _box_weights(u, width, first, weights):
 # The loops, unrolled over a row's columns, with reassociation allowed (fastmath: forward 4.2 ms
 # against 4.9 ms without on the tile of docs/bench/sampling.py, back alike). A loop over blocks of 4
 # (zero-padded) for wider supports was slower than the CSR product at 6 a side (45 ms against 27 ms,
-# one run), hence the CSR there.
+# one run), hence the CSR there. The scene's indices are unsigned (``fw`` too: pass it as np.uint64):
+# numba tests a signed index for a negative value to wrap it, a compare and a select per access, in
+# which these loops took 1.3-1.5x their time (forward 4.6-4.9 ms, back 5.3-5.5 ms on that tile, two
+# runs alternating; the same bits).
+_U1, _U2, _U3 = np.uint64(1), np.uint64(2), np.uint64(3)
 
 @compiled
 def _forward_four(corner, wu, wv, fw, v, out):
     for i in range(corner.shape[0]):
-        c = corner[i]
         a0 = 0.0
         a1 = 0.0
         a2 = 0.0
         a3 = 0.0
+        row = np.uint64(corner[i])
         for r in range(4):
-            row = c + r * fw
             b = wv[i, r]
             a0 += b * v[row]
-            a1 += b * v[row + 1]
-            a2 += b * v[row + 2]
-            a3 += b * v[row + 3]
+            a1 += b * v[row + _U1]
+            a2 += b * v[row + _U2]
+            a3 += b * v[row + _U3]
+            row += fw
         out[i] = wu[i, 0] * a0 + wu[i, 1] * a1 + wu[i, 2] * a2 + wu[i, 3] * a3
 
 
 @compiled
 def _back_four(corner, wu, wv, fw, x, out):
     for i in range(corner.shape[0]):
-        c = corner[i]
         u0 = wu[i, 0] * x[i]
         u1 = wu[i, 1] * x[i]
         u2 = wu[i, 2] * x[i]
         u3 = wu[i, 3] * x[i]
+        row = np.uint64(corner[i])
         for r in range(4):
-            row = c + r * fw
             b = wv[i, r]
             out[row] += b * u0
-            out[row + 1] += b * u1
-            out[row + 2] += b * u2
-            out[row + 3] += b * u3
+            out[row + _U1] += b * u1
+            out[row + _U2] += b * u2
+            out[row + _U3] += b * u3
+            row += fw
 
 
 @compiled
 def _forward_three(corner, wu, wv, fw, v, out):
     for i in range(corner.shape[0]):
-        c = corner[i]
         a0 = 0.0
         a1 = 0.0
         a2 = 0.0
+        row = np.uint64(corner[i])
         for r in range(3):
-            row = c + r * fw
             b = wv[i, r]
             a0 += b * v[row]
-            a1 += b * v[row + 1]
-            a2 += b * v[row + 2]
+            a1 += b * v[row + _U1]
+            a2 += b * v[row + _U2]
+            row += fw
         out[i] = wu[i, 0] * a0 + wu[i, 1] * a1 + wu[i, 2] * a2
 
 
 @compiled
 def _back_three(corner, wu, wv, fw, x, out):
     for i in range(corner.shape[0]):
-        c = corner[i]
         u0 = wu[i, 0] * x[i]
         u1 = wu[i, 1] * x[i]
         u2 = wu[i, 2] * x[i]
+        row = np.uint64(corner[i])
         for r in range(3):
-            row = c + r * fw
             b = wv[i, r]
             out[row] += b * u0
-            out[row + 1] += b * u1
-            out[row + 2] += b * u2
+            out[row + _U1] += b * u1
+            out[row + _U2] += b * u2
+            row += fw
