@@ -180,11 +180,12 @@ def _box_weights(u, width, first, weights):
 # The loops, unrolled over a row's columns, with reassociation allowed (fastmath: forward 4.2 ms
 # against 4.9 ms without on the tile of docs/bench/sampling.py, back alike). A loop over blocks of 4
 # (zero-padded) for wider supports was slower than the CSR product at 6 a side (45 ms against 27 ms,
-# one run), hence the CSR there. The scene's indices are unsigned (``fw`` too: pass it as np.uint64):
-# numba tests a signed index for a negative value to wrap it, a compare and a select per access, in
-# which these loops took 1.3-1.5x their time (forward 4.6-4.9 ms, back 5.3-5.5 ms on that tile, two
-# runs alternating; the same bits).
+# one run), hence the CSR there. The scene's indices are unsigned (``fw`` too: pass it as np.uint64;
+# corners are never negative): numba tests a signed index for a negative value to wrap it, a compare
+# and a select per access, with which these loops took 1.3-1.5x as long (forward 4.6-4.9 against 3.3
+# ms, back 5.3-5.5 against 3.6-3.7 ms on that tile, two runs of each alternating; the same bits).
 _U1, _U2, _U3 = np.uint64(1), np.uint64(2), np.uint64(3)
+
 
 @compiled
 def _forward_four(corner, wu, wv, fw, v, out):
