@@ -19,13 +19,11 @@ Two predictions, each best for its use:
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
-
 import numpy as np
 
 from ..geometry.resample import sample, valid_samples
 from .sampling import compiled
-from .stacks import nan_median
+from .stacks import each_strip, nan_median
 
 #: Interpolation of the frames onto the reference's grid and of the median scene back.
 KERNEL = "cubic"
@@ -84,28 +82,29 @@ def nearest_along(frames, good, warp, *, threads: int = 1) -> tuple[np.ndarray, 
     nearest the point (one a frame, as read: not interpolated), and where it is so predicted and the
     photosite's own reading is good. A frame whose nearest photosite to the point is the predicted
     photosite itself (no motion there) does not predict it: a defect would predict its own reading.
-    ``good`` and ``warp`` as :func:`scene_along`'s. Each frame's rows are searched in ``threads``
-    bands at once (the compiled search releases the GIL)."""
+    ``good`` and ``warp`` as :func:`scene_along`'s. Each frame's rows are searched a strip at a time
+    on ``threads`` threads (:func:`stacks.each_strip`; the compiled search releases the GIL)."""
     n_frames, h, w = frames.shape
     region = (0, 0, h, w)
     x = np.zeros(frames.shape, np.float32)
     valid = np.zeros(frames.shape, bool)
-    cuts = np.linspace(0, h, max(min(threads, h), 1) + 1).astype(int)
-    bands = list(zip(cuts[:-1], cuts[1:]))
-    with ThreadPoolExecutor(len(bands)) as pool:
-        for t in range(n_frames):
-            distance = np.full((NEAREST, h, w), np.inf, np.float32)  # squared, ascending
-            value = np.zeros((NEAREST, h, w), np.float32)
-            for s in _candidates(t, n_frames):
-                M, frame = warp.pair(t, s, region), np.ascontiguousarray(frames[s], np.float32)
-                homography = M.shape == (3, 3)
-                H = np.asarray(M if homography else np.eye(3), np.float64)
-                moved = np.ascontiguousarray(np.empty((0, 0, 2)) if homography else M, np.float32)
-                usable = np.ascontiguousarray(good(s, frame))
-                list(pool.map(lambda band: _keep_nearest(H, moved, frame, usable, distance, value, *band), bands))
-            known = np.isfinite(distance[-1])
-            x[t] = np.where(known, value.mean(axis=0), 0.0)
-            valid[t] = known & good(t, frames[t])
+    for t in range(n_frames):
+        distance = np.full((NEAREST, h, w), np.inf, np.float32)  # squared, ascending
+        value = np.zeros((NEAREST, h, w), np.float32)
+        for s in _candidates(t, n_frames):
+            M, frame = warp.pair(t, s, region), np.ascontiguousarray(frames[s], np.float32)
+            homography = M.shape == (3, 3)
+            H = np.asarray(M if homography else np.eye(3), np.float64)
+            moved = np.ascontiguousarray(np.empty((0, 0, 2)) if homography else M, np.float32)
+            usable = np.ascontiguousarray(good(s, frame))
+
+            def offer(rows):  # run at once: this candidate's arrays
+                _keep_nearest(H, moved, frame, usable, distance, value, rows.start, rows.stop)
+
+            each_strip(offer, frames.shape, threads=threads)
+        known = np.isfinite(distance[-1])
+        x[t] = np.where(known, value.mean(axis=0), 0.0)
+        valid[t] = known & good(t, frames[t])
     return x, valid
 
 
