@@ -184,9 +184,9 @@ def test_strips_of_rows_change_nothing(monkeypatch):
 
 @pytest.mark.parametrize("sensor", [MONO, RAW12])
 def test_threads_change_nothing(monkeypatch, sensor):
-    # the statistics along the frames run a strip of rows a thread, the nearest readings a band of
-    # rows a thread: on any number of threads, the same codes and noise (here several strips a thread,
-    # frames of different exposures)
+    # the statistics along the frames and the nearest readings run a strip of rows a thread: on any
+    # number of threads, the same codes and noise (here several strips a thread, frames of different
+    # exposures)
     burst = simulate_burst(shape=(120, 160), n_frames=6, sensor=sensor, scene="dead-leaves", exposure=0.15,
                            exposure_jitter=0.1, defects=0.01, seed=3)
     frames = (burst.frames.astype(np.float32) - sensor.black_level)[..., None]

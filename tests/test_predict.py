@@ -13,7 +13,7 @@ from gainfpn_cli.geometry.resample import positions
 from gainfpn_cli.geometry.warps import GlobalWarp
 from gainfpn_cli.sim.sensor import PRESETS
 from gainfpn_cli.sim.simulate import simulate_burst
-from gainfpn_cli.solve import predict
+from gainfpn_cli.solve import predict, stacks
 
 
 def _everywhere(t, frame):
@@ -53,8 +53,10 @@ def test_a_photosite_never_predicts_itself():
 
 
 @pytest.mark.parametrize("threads", [2, 3, 200])
-def test_bands_of_rows_on_threads_find_the_same_readings(threads):
-    # each frame's rows are searched in bands, one a thread (more threads than rows: one row each)
+def test_strips_of_rows_on_threads_find_the_same_readings(threads, monkeypatch):
+    # each frame's rows are searched a strip at a time on threads (7 rows a strip on one thread; more
+    # threads than rows: one row each)
+    monkeypatch.setattr(stacks, "STRIP_READINGS", 6 * 80 * 7)
     burst = simulate_burst(shape=(60, 80), n_frames=6, sensor=PRESETS["paper"], seed=3)
     frames, warp = burst.frames.astype(np.float32), GlobalWarp(burst.homographies)
     x, valid = predict.nearest_along(frames, _everywhere, warp)
