@@ -104,7 +104,9 @@ def test_dead_and_stuck_photosites_in_a_black_region_are_found():
     # a dark 8-bit burst: where the scene is a few counts no ratio is measured; a stuck photosite reading
     # 200 there, or a dead one reading 0 where the scene gives 3, is found by the dim frames' tests. Of those
     # whose readings differ from a healthy one's with the scene known (response_z) by more than 10 / 40:
-    # 111 of 114 / 49 of 50 flagged (104 / 44 without those tests)
+    # 112 of 114 / 49 of 50 flagged (104 / 44 without those tests; 111 / 49 with the dead photosites'
+    # deficit over the dim frames alone and readings far above the scene asked only where fewer than
+    # 4 frames are lit, which left one dead photosite lit in 2 of 8 frames unfound)
     sensor = PRESETS["paper"]
     kwargs = dict(shape=(240, 320), n_frames=8, sensor=sensor, scene="dead-leaves", exposure=0.075, seed=3)
     burst = simulate_burst(defects=0.005, **kwargs)
@@ -113,7 +115,8 @@ def test_dead_and_stuck_photosites_in_a_black_region_are_found():
     found = _codes(burst, sensor)[odd] > 0
     assert (z > 40).sum() >= 40 and (z > 10).sum() >= 100
     assert found[z > 40].mean() >= 0.95
-    assert found[z > 10].mean() >= 0.96
+    assert found[z > 10].mean() >= 0.98
+    assert found[(z > 10) & (burst.defects[odd] == D.DEAD)].all()  # 58
     clean = _codes(simulate_burst(**kwargs), sensor)
     assert np.count_nonzero(clean) <= 1e-4 * clean.size
 
@@ -205,6 +208,29 @@ def test_each_strip_keeps_the_order_on_threads():
     expected = [(rows.start, rows.stop) for rows in stacks.strips(shape, parts=2 ** 20 // 200)]
     got = stacks.each_strip(lambda rows: (rows.start, rows.stop), shape, parts=2 ** 20 // 400, threads=2)
     assert got == expected and len(got) > 10
+
+
+@pytest.mark.parametrize("kind", ["weak", "stuck"])
+def test_a_response_below_half_the_planes_is_a_defect(kind):
+    # a photosite giving 0.25-0.4 of its scene: a gain the default range (k at most 2) does not hold.
+    # Weak (its readings follow the scene): dead, but for one of the 40 whose trajectory crosses an
+    # edge (9 -> 80 DN); stuck at that share of its first reading in every frame: stuck, or dead
+    # where 8-bit noise cannot tell it from constant. With 0.25 as the bound: 1 of 40 weak ones and
+    # 35 of 40 stuck flagged
+    sensor = PRESETS["paper"]
+    kwargs = dict(shape=(120, 160), n_frames=8, sensor=sensor, scene="procedural", exposure=0.75, seed=4)
+    burst = simulate_burst(**kwargs)
+    rng = np.random.default_rng(0)
+    odd = np.zeros(burst.frames.shape[1:], bool)
+    odd[rng.integers(8, 112, 40), rng.integers(8, 152, 40)] = True
+    share = rng.uniform(0.25, 0.4, odd.sum())
+    frames = burst.frames.astype(np.float64)
+    frames[:, odd] = np.round(share * (frames[:, odd] if kind == "weak" else frames[:1, odd]))
+    codes = _codes(dataclasses.replace(burst, frames=frames.astype(burst.frames.dtype)), sensor)
+    assert (codes[odd] > 0).sum() >= (39 if kind == "weak" else 40)
+    if kind == "weak":
+        assert (codes[odd] == D.DEAD).sum() >= 39
+    assert np.count_nonzero(codes[~odd]) == 0
 
 
 def test_too_few_frames_find_nothing():

@@ -22,11 +22,14 @@ noisier). Each photosite gets
 Kinds, in the order they are tested (:data:`KINDS` gives the codes of ``gain_map.exr``'s
 ``defect`` channel):
 
-* ``dead``: no response, below :data:`DEAD_RESPONSE` of the plane's, below :data:`DEAD_CEILING`
+* ``dead``: no response, or too little for the gain range: below :data:`LOW_RESPONSE` of the
+  plane's (between :data:`DEAD_RESPONSE` and it, unless stuck), below :data:`DEAD_CEILING`
   in every frame, and ``z < -Z_DEFECT``, where the sharper prediction does not show a response or
-  a scene too dark for one; or, where the scene is too dark for a response, readings below it in
-  every frame (:func:`_dark_scores`, ``< -Z_DEFECT``, and below ``-Z_DEFECT / 2`` against the
-  sharper prediction: beside a bright edge the median's error fakes both);
+  a scene too dark for one, or the deficit below; or, where fewer than :data:`MIN_FRAMES` frames
+  are lit enough for a response, readings below the healthy response in every frame, by a
+  deficit that weighs each frame as a fitted response does (lit frames most; :func:`_dark_scores`,
+  ``< -Z_DEFECT``, and below ``-Z_DEFECT / 2`` against the sharper prediction: beside a bright
+  edge the median's error fakes both);
 * ``stuck``: one reading (to a quantisation step) in every frame, where a healthy photosite's
   would vary more than :data:`stuck.QUANTISED_STEPS` quantisation steps, by more than 1 /
   :data:`stuck.STUCK_SPREAD` times as much (in RMS) (the smaller of its 8 neighbours' and the scene's
@@ -39,10 +42,10 @@ Kinds, in the order they are tested (:data:`KINDS` gives the codes of ``gain_map
   goes unseen; a dark frame finds those, ``input.dark``); or an offset far above the plane's in
   a fit of gain and offset to its readings (:func:`_offset_scores`, ``> Z_OFFSET``, and ``>
   Z_SHARP_OFFSET`` against the sharper prediction): a trajectory across an edge tells an offset
-  from a gain where the ratio's scatter over the frames hides it from the response; or, where the scene
-  is too dark for a response, readings far above it in every frame (:func:`_dark_scores`, ``>
-  Z_DEFECT``, and above ``Z_DEFECT / 2`` against the sharper prediction: a stuck or hot photosite
-  in a black region).
+  from a gain where the ratio's scatter over the frames hides it from the response; or readings far
+  above the scene in every frame too dark for a response, at least :data:`MIN_FRAMES` of them
+  (:func:`_dark_scores`, ``> Z_DEFECT``, and above ``Z_DEFECT / 2`` against the sharper prediction:
+  a stuck or hot photosite in a black region).
 
 Abnormally noisy photosites are not flagged: at scene edges of an aliased plane the prediction's
 error scatters a healthy photosite's readings as much (docs/limits.md).
@@ -70,6 +73,12 @@ KINDS = {"hot": HOT, "dead": DEAD, "stuck": STUCK}
 
 #: A photosite that gives less than this fraction of its plane's response is dead.
 DEAD_RESPONSE = 0.25
+#: ... and one under this fraction is coded dead too, unless it reads one value in every frame
+#: (stuck): a gain the default range does not hold (solver.gain_range, k at most 2). Stuck
+#: photosites reading 0.3-0.5 of a flat scene, which 8-bit noise does not tell from constant, were
+#: left at 0.25 (docs/bench/defects.py, 8-bit at 75 %: stuck found 74-89 % -> 81-90 %; healthy
+#: photosites flagged on its 80 photograph bursts 25 -> 29).
+LOW_RESPONSE = 0.5
 #: ... and less than this in every frame: a healthy photosite beside a sharp edge that the
 #: prediction misses reads dark in some frames only (a dead one reads its noise, which at the
 #: lowest level tested, MIN_LEVEL, is up to ~0.3 of it).
@@ -185,8 +194,9 @@ def survey(frames: np.ndarray, warp, *, saturation: float | None = None,
     # prediction misses, consistently over the frames, for every photosite around
     typical, plane_spread, spread = _robust_spread(response, tested)
     z = _scores(response, typical, spread, scatter, n, tested)
-    dead = tested & (response < DEAD_RESPONSE * typical) & (highest < DEAD_CEILING * typical) & (z < -Z_DEFECT)
-    whole = usable.all(axis=0) & ~dead
+    dead = tested & (response < LOW_RESPONSE * typical) & (highest < DEAD_CEILING * typical) & (z < -Z_DEFECT)
+    silent = dead & (response < DEAD_RESPONSE * typical)  # dead whatever its readings' spread
+    whole = usable.all(axis=0) & ~silent
     noise = fit_noise(*level_and_scatter(frames, x, response, whole, threads=threads), n_frames)
     stuck = stuck_photosites(frames, read, always, x, typical, noise, step, floor, threads)
     usable &= from_frames  # from here on, only readings the other frames predict
@@ -207,15 +217,16 @@ def survey(frames: np.ndarray, warp, *, saturation: float | None = None,
     # far from its scene; the sharper prediction's, less than half of it there, seldom: each is
     # confirmed by it, a dim one at half the score (that prediction is the noisier: at the full
     # score the 8-bit dark dead leaves of docs/bench/defects.py lost 3 % of their dead photosites,
-    # at half none)
-    dead &= sharp.unlit
-    stuck &= sharp.lit | (read[0] > floor)
+    # at half none); a dead response whose frames are mostly dim by the deficit of them all too
     dim = np.where((dim * sharp.dim > 0) & (np.abs(sharp.dim) > Z_DEFECT / 2), dim, 0)
+    dead &= sharp.unlit | (dim < -Z_DEFECT)
+    stuck &= sharp.lit | (read[0] > floor)
     if n_frames >= MIN_FIT_FRAMES:
         hot |= sharp.offsets > Z_SHARP_OFFSET
-    stuck &= ~dead
+    stuck &= ~(silent & dead)
+    dead &= ~stuck
     hot &= tested & ~dead & ~stuck
-    hot |= ~tested & ~stuck & (dim > Z_DEFECT)
+    hot |= ~dead & ~stuck & (dim > Z_DEFECT)
     dead |= ~tested & ~stuck & (dim < -Z_DEFECT)
     for mask, code in ((dead, DEAD), (stuck, STUCK), (hot, HOT)):
         codes[mask] = code
@@ -239,7 +250,7 @@ class _Sharp(NamedTuple):
 
     offsets: np.ndarray | None  # _offset_scores against it (None under MIN_FIT_FRAMES frames)
     dim: np.ndarray  # _dark_scores against it
-    unlit: np.ndarray  # its response under DEAD_RESPONSE of the plane's, or fewer than MIN_FRAMES predicted
+    unlit: np.ndarray  # its response under LOW_RESPONSE of the plane's, or fewer than MIN_FRAMES predicted
     lit: np.ndarray  # at the photosites asked: the median scene along the trajectory above the floor
 
 
@@ -266,7 +277,7 @@ def _sharp_tests(frames, good, warp, floor: float, noise, plane_typical: float, 
     typical, spread, _ = _robust_spread(response, tested)
     fit = frames.shape[0] >= MIN_FIT_FRAMES
     offsets = _offset_scores(frames, x, usable, typical, spread, scatter, noise, threads) if fit else None
-    return _Sharp(offsets, dim, ~seen | (tested & (response < DEAD_RESPONSE * typical)), lit)
+    return _Sharp(offsets, dim, ~seen | (tested & (response < LOW_RESPONSE * typical)), lit)
 
 
 def _responses(y: np.ndarray, x: np.ndarray, usable: np.ndarray, threads: int = 1) -> tuple[np.ndarray, ...]:
@@ -359,9 +370,13 @@ def _dark_scores(y: np.ndarray, x: np.ndarray, valid: np.ndarray, usable: np.nda
     over the 5x5 neighbourhood of every photosite's mean excess in all its ``valid`` frames (beside
     a sharp edge the interpolated prediction rings, below black in places, and healthy readings
     there exceed it by hundreds of DN); 0 where fewer than :data:`MIN_FRAMES` frames are dim or the readings are not all above
-    (or all below) their healthy response. A stuck or hot photosite in a black region reads far
-    above what any healthy one there can (a stuck reading of 200 where the scene gives 3 counts),
-    a dead one below it in every frame (0 where the scene gives 3-5 counts)."""
+    (or all below) their healthy response. Or, lower, where every ``valid`` reading (at least
+    :data:`MIN_FRAMES`) is below its healthy response, that deficit as a response fitted over them
+    all would show it: ``sum x_t (y_t - typical x_t) / v_t`` over its standard error, ``v_t`` the
+    noise at ``x_t``, the gains' ``spread`` counted. A stuck or hot photosite in a black region reads
+    far above what any healthy one there can (a stuck reading of 200 where the scene gives 3
+    counts), a dead one below it in every frame (0 where the scene gives 2-5 counts, or 15 in the
+    one frame its trajectory crosses a lit patch)."""
     # two passes a strip at a time (on ``threads`` threads): a plane's temporaries, not a stack's
     overall = np.zeros(y.shape[1:], np.float32)
 
@@ -387,6 +402,16 @@ def _dark_scores(y: np.ndarray, x: np.ndarray, valid: np.ndarray, usable: np.nda
         own = np.sqrt(noise(np.maximum(brightest, 0.0)) / np.maximum(count, 1) + (spread * brightest) ** 2)
         sure = (count >= MIN_FRAMES) & ((lowest > 0) | (highest < 0))
         score[rows] = np.where(sure, excess / np.maximum(np.maximum(own, around[rows]), 1e-12), 0.0)
+        # a dead photosite's deficit grows with the scene: its response fitted over every frame, lit
+        # and dim, each weighted by x / v, against the healthy one (the gains' spread counted)
+        every = valid[:, rows]
+        lit = np.where(every, x[:, rows], np.float32(0)).astype(np.float64)
+        weight = lit / np.maximum(noise(np.maximum(lit, 0.0)), 1e-30)
+        information = (weight * lit).sum(axis=0)
+        deficit = (weight * np.where(every, over, 0)).sum(axis=0)
+        short = (every.sum(axis=0) >= MIN_FRAMES) & (np.where(every, over, -np.inf).max(axis=0) < 0)
+        dead = deficit / np.sqrt(information + (spread * information) ** 2 + 1e-30)
+        score[rows] = np.where(short, np.minimum(score[rows], dead), score[rows])
 
     each_strip(dim_score, y.shape, threads=threads)
     return score
