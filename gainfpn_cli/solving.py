@@ -216,13 +216,14 @@ def bootstrapped(burst, frames, excluded, exposures, used: slice, in_frame, solv
     regions = central(burst, frames, solver)
     jobs = _jobs(burst, frames, excluded, exposures, [used], in_frame, solver, regions)
     update = progress("confidence", 0) if progress else None
-    # fitted and rendered through the warps the accurate solver fits the rendered burst with: the scene
-    # model's refinement of them (docs/method.md 8b) would misregister it against them; its exposures
-    # are refined, as the real frames' are what they are whatever the exposures the solver is given
-    given_warps = dataclasses.replace(solver.scene, refine_warps=False)
+    # rendered through the warps each frame's mean move over a tile refines (docs/method.md 11): the burst
+    # then carries the warps' error as the real one does against those the accurate solver fits it with;
+    # the field the scene solver fits (section 8b) would misregister it beyond that. Its exposures are
+    # refined, as the real frames' are what they are whatever the exposures the solver is given
+    shifted = dataclasses.replace(solver.scene, refine_warps="shift")
     models = [{"frames": f, "motion": m, "saturation": burst.saturation, "excluded": x, "exposures": e,
-               "options": scene_options(given_warps, grid)} for _, grid, (f, x, m, e) in jobs]
-    rendered = bootstrap.render_many(models, options=given_warps, workers=solver.workers, progress=update,
+               "options": scene_options(shifted, grid)} for _, grid, (f, x, m, e) in jobs]
+    rendered = bootstrap.render_many(models, options=shifted, workers=solver.workers, progress=update,
                                      executor=solver.executor)
     problems, fits = [], []
     for (_, grid, (f, x, m, e)), model in zip(jobs, rendered):

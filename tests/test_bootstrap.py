@@ -59,11 +59,13 @@ def test_the_raised_factor_is_at_least_both_at_every_sigma(at_a, at_b, data):
     np.testing.assert_allclose(got.factor, larger, rtol=1e-12)
 
 
-def test_the_model_burst_is_rendered_through_the_warps_it_is_fitted_with(monkeypatch):
+def test_the_model_burst_is_rendered_through_the_warps_shifted_only(monkeypatch):
     # the accurate solver fits the rendered burst with the burst's warps; a scene model that refined
-    # them per tile would misregister it against them (on a 640x480 photograph the model's burst read
-    # k's error 2.1-2.8x the real one's: docs/method.md section 11); its exposures are refined (the
-    # real frames' jitter is there whatever exposures the solver is given: tests/test_exposure.py)
+    # them by a field per tile would misregister it against them (on a 640x480 photograph the model's
+    # burst read k's error 2.1-2.8x the real one's: docs/method.md section 11), one that kept them would
+    # leave out their error (on 240x320x16 procedural bursts the least precise tenth 1.28-1.30x -> 1.35-1.47x
+    # on seeds 3 and 6); its exposures are refined (the real frames' jitter is there whatever exposures
+    # the solver is given: tests/test_exposure.py)
     from gainfpn_cli import api, solving
     from gainfpn_cli.sim.simulate import simulate_burst
 
@@ -78,4 +80,4 @@ def test_the_model_burst_is_rendered_through_the_warps_it_is_fitted_with(monkeyp
     burst = simulate_burst(shape=(96, 128), n_frames=5, scene="procedural", seed=2)
     api.estimate(burst.frames.astype(np.float32), saturation=255.0,
                  **{"solver.workers": 1, "solver.method": "accurate", "output.holdout": False})
-    assert len(seen) >= 2 and all(options.refine_frames and not options.refine_warps for options in seen)
+    assert len(seen) >= 2 and all(options.refine_frames and options.refine_warps == "shift" for options in seen)

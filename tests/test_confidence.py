@@ -128,7 +128,7 @@ def test_sixteen_frames_count_the_error_both_halves_make_alike(seed):
     # pairwise model's on the scene's detail, the motion estimate's) is about as large as the noise's and much
     # the same in both halves, which their Hausman difference does not see. With the halves alone the least precise tenth erred 2.10x (seed 1) and 1.62x
     # (seed 4) the written sigma_k, the other tenths 1.12-1.30x; with the factors raised to those the burst the
-    # scene model predicts measures, 1.16x and 1.17x (seeds 1-6: 1.11-1.29x, docs/limits.md "Confidence")
+    # scene model predicts measures, 1.16x and 1.17x (seeds 1-6: 1.12-1.30x, docs/limits.md "Confidence")
     result, burst = _estimate(PRESETS["paper"], 16, "accurate", "balanced", shape=(240, 320), scene="procedural",
                               seed=seed)
     assert all(p.confidence_calibrated for p in result.report.planes.values())

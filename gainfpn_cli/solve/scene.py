@@ -30,6 +30,7 @@ parallel; the result does not depend on the number of workers.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
@@ -77,8 +78,9 @@ class SceneOptions:
         Refine every frame's warp over the tile and its exposure against the model
         (:func:`solve.frames.refine_frames`, docs/method.md section 8b): before the first step the
         exposures, after it any significant change, after the last a material one, which adds a
-        step, up to ``extra_steps``. With ``refine_warps`` False the exposures only, the warps
-        taken as given.
+        step, up to ``extra_steps``. ``refine_warps``: ``"field"`` the quadratic field over the
+        tile, ``"shift"`` only each frame's mean move over the tile (the burst the model predicts,
+        :func:`solving.bootstrapped`).
     refine_px, refine_exposure : float
         The RMS move (grid px) and the exposure change that make a change material: after the last
         step one below both is left; after the first, a move above ``refine_px`` starts the fit
@@ -100,7 +102,7 @@ class SceneOptions:
     halo: int = 8
     gain_range: tuple[float, float] = (0.5, 2.0)
     refine_frames: bool = True
-    refine_warps: bool = True
+    refine_warps: Literal["field", "shift"] = "field"
     # up to 4 more steps while frames still move: 1 px of distortion under a forced homography
     # (640x480x8, bench) 1.87 % -> 0.98 %
     extra_steps: int = 4

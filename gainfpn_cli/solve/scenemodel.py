@@ -184,8 +184,8 @@ def fit_tile(tile: Tile) -> SceneFit | None:
             moves, gains, kept = refine_frames(A.forward, s, predicted, a, y, valid, fitted, (h, w), scale=opt.scale,
                                                refine_px=opt.refine_px if material else 0.0,
                                                refine_exposure=opt.refine_exposure if material else 0.0)
-            if not opt.refine_warps:  # the exposures only (fitted with the moves, which are dropped)
-                moves = np.zeros_like(moves)
+            if opt.refine_warps == "shift":  # each frame's mean move (fitted with the field's shape, dropped)
+                moves = np.broadcast_to(moves.mean(axis=1, keepdims=True), moves.shape).copy()
             if step >= opt.steps:  # reported below if no step follows
                 small = np.where(kept[:, None, None], 0.0, moves)
             moves, gains = np.where(kept[:, None, None], moves, 0.0), np.where(kept, gains, 1.0)
