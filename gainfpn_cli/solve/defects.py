@@ -31,7 +31,7 @@ Kinds, in the order they are tested (:data:`KINDS` gives the codes of ``gain_map
   ``< -Z_DEFECT``, and below ``-Z_DEFECT / 2`` against the sharper prediction: beside a bright
   edge the median's error fakes both);
 * ``stuck``: one reading (to a quantisation step) in every frame, where a healthy photosite's
-  would vary more than :data:`stuck.QUANTISED_STEPS` quantisation steps, by more than 1 /
+  would vary more than :func:`stuck.quantised_steps` quantisation steps, by more than 1 /
   :data:`stuck.STUCK_SPREAD` times as much (in RMS) (the smaller of its 8 neighbours' and the scene's
   along its trajectory plus the noise at its level), unless both the reading and the scene are
   about black;

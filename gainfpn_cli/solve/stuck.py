@@ -11,9 +11,13 @@ from .stacks import each_strip
 
 #: Readings whose RMS spread over the frames is below this fraction of a healthy photosite's are stuck.
 STUCK_SPREAD = 0.02
-#: ... tested only where a healthy one's is above this many quantisation steps (RMS): with
-#: less, a healthy photosite often reads one count in every frame.
+#: ... tested only where a healthy one's is above this many quantisation steps (RMS) at 8 frames or
+#: fewer: with less, a healthy photosite often reads one count in every frame.
 QUANTISED_STEPS = 3.0
+#: With more frames, from the RMS (in steps) at which a healthy photosite reads one value in every
+#: frame by this chance: that of QUANTISED_STEPS at 8 frames (readings rounded from a normal
+#: spread, the worst offset of its mean from a step).
+ONE_VALUE_CHANCE = 2.5e-7
 
 
 def stuck_photosites(frames: np.ndarray, read: np.ndarray, whole: np.ndarray, x: np.ndarray, typical: float,
@@ -51,8 +55,30 @@ def stuck_photosites(frames: np.ndarray, read: np.ndarray, whole: np.ndarray, x:
     scene = MAD_TO_SIGMA * np.median(np.abs(seen - middle[None]), axis=0)
     expected = np.fmin(np.nan_to_num(around, nan=np.inf), (typical * scene) ** 2 + noise(np.maximum(middle, 0.0)))
     lit = (read[0][at] > floor) | (middle > floor)
-    stuck[at] = lit & (expected > (QUANTISED_STEPS * step) ** 2) & (spread < STUCK_SPREAD**2 * expected)
+    least = quantised_steps(frames.shape[0]) * step
+    stuck[at] = lit & (expected > least**2) & (spread < STUCK_SPREAD**2 * expected)
     return stuck
+
+
+def one_value_chance(sigma: float, n_frames: int) -> float:
+    """The chance that ``n_frames`` readings rounded to whole steps from a normal spread of RMS
+    ``sigma`` steps are all one value, at the worse of a mean on a step and between two."""
+    from scipy.stats import norm
+
+    half = np.ceil(8 * sigma) + 1
+    edges = np.arange(-half, half + 2) - 0.5  # between whole steps, 8 sigmas and more either side
+    return max(float(np.sum(np.diff(norm.cdf((edges - mean) / sigma)) ** n_frames)) for mean in (0.0, 0.5))
+
+
+def quantised_steps(n_frames: int) -> float:
+    """The least RMS (in quantisation steps) of a healthy photosite's readings at which one value in
+    every frame is a stuck photosite's: :data:`QUANTISED_STEPS` up to 8 frames, with more where a
+    healthy one reads one value by no more than :data:`ONE_VALUE_CHANCE` (1.4 at 12 frames, 1.0 at 16)."""
+    if n_frames <= 8:
+        return QUANTISED_STEPS
+    from scipy.optimize import brentq
+
+    return float(brentq(lambda s: one_value_chance(s, n_frames) - ONE_VALUE_CHANCE, 0.05, QUANTISED_STEPS))
 
 
 def quantisation_step(frames: np.ndarray) -> float:
