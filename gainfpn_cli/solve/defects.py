@@ -404,14 +404,19 @@ def _dark_scores(y: np.ndarray, x: np.ndarray, valid: np.ndarray, usable: np.nda
         score[rows] = np.where(sure, excess / np.maximum(np.maximum(own, around[rows]), 1e-12), 0.0)
         # a dead photosite's deficit grows with the scene: its response fitted over every frame, lit
         # and dim, each weighted by x / v, against the healthy one (the gains' spread counted)
+        # (only where every reading is below it: a few photosites, not the strip's stack)
         every = valid[:, rows]
-        lit = np.where(every, x[:, rows], np.float32(0)).astype(np.float64)
+        at = np.nonzero((every.sum(axis=0) >= MIN_FRAMES) & (np.where(every, over, -np.inf).max(axis=0) < 0))
+        if not at[0].size:
+            return
+        known = every[:, at[0], at[1]]
+        lit = np.where(known, x[:, rows][:, at[0], at[1]], np.float32(0)).astype(np.float64)
         weight = lit / np.maximum(noise(np.maximum(lit, 0.0)), 1e-30)
         information = (weight * lit).sum(axis=0)
-        deficit = (weight * np.where(every, over, 0)).sum(axis=0)
-        short = (every.sum(axis=0) >= MIN_FRAMES) & (np.where(every, over, -np.inf).max(axis=0) < 0)
+        deficit = (weight * np.where(known, over[:, at[0], at[1]], 0)).sum(axis=0)
         dead = deficit / np.sqrt(information + (spread * information) ** 2 + 1e-30)
-        score[rows] = np.where(short, np.minimum(score[rows], dead), score[rows])
+        part = score[rows]  # (a view: written through)
+        part[at] = np.minimum(part[at], dead)
 
     each_strip(dim_score, y.shape, threads=threads)
     return score
