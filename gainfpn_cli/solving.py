@@ -152,7 +152,7 @@ def solve_planes(burst, frames, excluded, exposures, used: slice, in_frame, solv
         noise_bounded(burst, frames[used], confidence, solver.noise)
     halves = None
     if split and solver.method == "accurate" and len(range(len(frames))[used]) >= MIN_SPLIT_FRAMES:
-        middle = central(burst, frames, solver)
+        middle = measured_regions(burst, frames, solver)
         halves = [half[:2] for half in solve_raws(burst, frames, excluded, exposures,
                                                    [slice(used.start + offset, used.stop, 2) for offset in (0, 1)],
                                                    in_frame, solver, progress, regions=middle)]
@@ -213,7 +213,7 @@ def bootstrapped(burst, frames, excluded, exposures, used: slice, in_frame, solv
     region's predicted burst cannot be fitted again."""
     if burst.cfa is not None:
         return {}
-    regions = central(burst, frames, solver)
+    regions = measured_regions(burst, frames, solver)
     jobs = _jobs(burst, frames, excluded, exposures, [used], in_frame, solver, regions)
     update = progress("confidence", 0) if progress else None
     # rendered through the warps each frame's mean move over a tile refines (docs/method.md 11): the burst
@@ -339,22 +339,33 @@ def _gather_region(grid, stack, rows: slice, columns: slice) -> np.ndarray:
     return np.stack([grid.gather(one)[rows, columns] for one in stack])
 
 
-def central(burst, frames, solver: Solver, side: int | None = None) -> dict:
-    """The central ``side`` (default :data:`CHECK_SIDE`) px of every grid, as (rows, columns) slices by
-    grid name."""
+def central(burst, frames, solver: Solver, side: int | None = None, whole: int = 0) -> dict:
+    """The central ``side`` (default :data:`CHECK_SIDE`) px of every grid, all of an axis no longer than
+    ``whole`` px, as (rows, columns) slices by grid name."""
     side = CHECK_SIDE if side is None else side
     regions = {}
     for grid in grids_of(burst, frames, solver.method):
-        h, w = grid.shape
-        y0, x0 = max(0, (h - side) // 2), max(0, (w - side) // 2)
-        regions[grid.name] = (slice(y0, min(h, y0 + side)), slice(x0, min(w, x0 + side)))
+        regions[grid.name] = tuple(slice(0, n) if n <= whole else slice(max(0, (n - side) // 2),
+                                                                       min(n, (n + side) // 2)) for n in grid.shape)
     return regions
+
+
+def measured_regions(burst, frames, solver: Solver) -> dict:
+    """Where k's error is measured (on halves, on the burst the scene model predicts): the :func:`central`
+    :data:`CHECK_SIDE` px of every grid, or all of an axis no longer than :data:`MEASURED_WHOLE`."""
+    return central(burst, frames, solver, whole=MEASURED_WHOLE)
 
 
 #: Side (px of each grid) of the central region the hold-out check fits again without the reference:
 #: enough blocks for a standard error of the ratio near 1 % (256 blocks of 16 px), at a small cost
 #: on large frames (a 12 MP mosaic's planes are 2000 px wide).
 CHECK_SIDE = 256
+#: Longest axis (px of a grid) whose error is measured along all of it, not only its central
+#: :data:`CHECK_SIDE` px: the strips beside the frame's edges, where trajectories are shortest and the
+#: motion estimate errs most, are then a large share of its pixels (on 240x320 8-bit bursts of 16
+#: frames, the 8-32 px from the left and right edges: 15 %), and cost at most 1.5x the region's
+#: fits. Measured there (docs/limits.md, "Confidence"): the least precise tenth 1.12-1.30 -> 1.13-1.16.
+MEASURED_WHOLE = 3 * CHECK_SIDE // 2
 def scene_options(options: SceneOptions, grid) -> SceneOptions:
     """The scene solver's options on ``grid``: a photosite is ``1 / scale`` of the grid's pitch wide
     (a CFA plane's photosites are every other one of the mosaic)."""

@@ -122,13 +122,15 @@ def test_a_bright_smooth_burst_counts_the_band_no_fit_estimates(seed):
     assert all(0.75 <= r <= 1.25 for r in ratios), ratios
 
 
-@pytest.mark.parametrize("seed", [1, pytest.param(4, marks=pytest.mark.slow)])
+@pytest.mark.parametrize("seed", [3, pytest.param(1, marks=pytest.mark.slow), pytest.param(6, marks=pytest.mark.slow)])
 def test_sixteen_frames_count_the_error_both_halves_make_alike(seed):
     # `balanced` (cubic, 3 partners) on a bright smooth 8-bit burst of 16 frames: k's error beyond the noise (the
     # pairwise model's on the scene's detail, the motion estimate's) is about as large as the noise's and much
-    # the same in both halves, which their Hausman difference does not see. With the halves alone the least precise tenth erred 2.10x (seed 1) and 1.62x
-    # (seed 4) the written sigma_k, the other tenths 1.12-1.30x; with the factors raised to those the burst the
-    # scene model predicts measures, 1.16x and 1.17x (seeds 1-6: 1.12-1.30x, docs/limits.md "Confidence")
+    # the same in both halves, which their Hausman difference does not see. With the halves alone the least
+    # precise tenth erred 2.10x (seed 1) the written sigma_k; with the factors raised to those the burst the
+    # scene model predicts measures, 1.16x. Measured on the central 256 px only, seeds 3 and 6 erred 1.30x and
+    # 1.28x there (a flat patch beside an edge 10-26 px from the border, outside that region); measured along
+    # the whole 320 px, 1.12x and 1.14x (seeds 1-6: 1.12-1.16x, docs/limits.md "Confidence")
     result, burst = _estimate(PRESETS["paper"], 16, "accurate", "balanced", shape=(240, 320), scene="procedural",
                               seed=seed)
     assert all(p.confidence_calibrated for p in result.report.planes.values())
