@@ -2,6 +2,7 @@
 
     python docs/bench/confidence.py [SCENES [PRESETS [FRAMES [EXPOSURES]]]]   # default: moon,camera paper,raw12 9,16 0.5,0.075
     python docs/bench/confidence.py fit [PARTNERS]   # the accurate solver's own sigma_k by frame count
+    python docs/bench/confidence.py spec [SEEDS]     # the bench's confidence group at other seeds (default 1,2,3)
 
 Bursts of 240x320 rendered from scikit-image's sample photographs (not a dependency of gainfpn:
 ``pip install scikit-image``), 8-bit mono (``paper``) and 12-bit RGGB (``raw12``), at 50 % and
@@ -12,6 +13,10 @@ one more that no fit sees. One JSON line per burst: per
 decile of the written sigma_k, the RMS of the actual error of k over the RMS sigma_k (1 is
 honest); the MSE before over after correction on the unseen frame; the residual gain FPN and
 the reported input pixel FPN against the truth. About 15 minutes for the default.
+
+``spec``: the bursts of ``gainfpn bench --group confidence`` (issue 21's: procedural and dead leaves,
+8-bit and 12-bit RGGB, 75 % and 15 % exposure, bursts of 5 and 16 frames) at SEEDS instead of its 7,
+one frame more each as above. About 5 minutes a seed.
 
 ``fit``: dark procedural 240x320 bursts of the paper's sensor (7.5 % exposure, where k's error is
 the noise's) of 3, 4, 5, 6, 8 and 12 frames, solved by the accurate solver with the true motion
@@ -104,9 +109,22 @@ def fit(partners=8, seed=3):
         print(json.dumps(row), flush=True)
 
 
+def spec(seeds=(1, 2, 3)):
+    """One JSON line per burst of the bench's confidence group, at ``seeds`` (see the module)."""
+    for seed in seeds:
+        for scene in ("procedural", "dead-leaves"):
+            for preset in ("paper", "raw12"):
+                for exposure in (0.75, 0.15):
+                    for frames in (5, 16):
+                        print(json.dumps({**case(scene, preset, exposure, frames, seed), "seed": seed}), flush=True)
+
+
 if __name__ == "__main__":
     if len(sys.argv) > 1 and sys.argv[1] == "fit":
         fit(int(sys.argv[2]) if len(sys.argv) > 2 else 8)
+        sys.exit()
+    if len(sys.argv) > 1 and sys.argv[1] == "spec":
+        spec([int(s) for s in sys.argv[2].split(",")] if len(sys.argv) > 2 else (1, 2, 3))
         sys.exit()
     scenes = sys.argv[1].split(",") if len(sys.argv) > 1 else ("moon", "camera")
     counts = [int(f) for f in sys.argv[3].split(",")] if len(sys.argv) > 3 else (9, 16)
