@@ -135,7 +135,7 @@ def rates(cases=pool):
     print(json.dumps({"refused": len(refused),
         "harmful": len(harmful), "accepted_harmful": sum(r["status"] != "rejected" for r in harmful),
         "helpful": len(helpful), "rejected_helpful": sum(r["status"] == "rejected" for r in helpful),
-        "written_worse_than_none": sum(r["written"] < 0.999 for r in rows)}))
+        "written_worse_than_none": sum(r["written"] < 1.0 for r in rows)}))
 
 
 if __name__ == "__main__":
