@@ -352,20 +352,21 @@ def central(burst, frames, solver: Solver, side: int | None = None, whole: int =
 
 def measured_regions(burst, frames, solver: Solver) -> dict:
     """Where k's error is measured (on halves, on the burst the scene model predicts): the :func:`central`
-    :data:`CHECK_SIDE` px of every grid, or all of an axis no longer than :data:`MEASURED_WHOLE`."""
-    return central(burst, frames, solver, whole=MEASURED_WHOLE)
+    :data:`CHECK_SIDE` px of every grid, or all of an axis no longer than :data:`MEASURED_WHOLE` times that."""
+    return central(burst, frames, solver, whole=int(MEASURED_WHOLE * CHECK_SIDE))
 
 
 #: Side (px of each grid) of the central region the hold-out check fits again without the reference:
 #: enough blocks for a standard error of the ratio near 1 % (256 blocks of 16 px), at a small cost
 #: on large frames (a 12 MP mosaic's planes are 2000 px wide).
 CHECK_SIDE = 256
-#: Longest axis (px of a grid) whose error is measured along all of it, not only its central
-#: :data:`CHECK_SIDE` px: the strips beside the frame's edges, where trajectories are shortest and the
-#: motion estimate errs most, are then a large share of its pixels (on 240x320 8-bit bursts of 16
-#: frames, the 8-32 px from the left and right edges: 15 %), and cost at most 1.5x the region's
-#: fits. Measured there (docs/limits.md, "Confidence"): the least precise tenth 1.12-1.30 -> 1.13-1.16.
-MEASURED_WHOLE = 3 * CHECK_SIDE // 2
+#: Longest axis of a grid, in :data:`CHECK_SIDE`, whose error is measured along all of it, not only its
+#: central CHECK_SIDE px (384 px): the strips beside the frame's edges, where trajectories are shortest
+#: and the motion estimate errs most, are then a large share of its pixels (on a 240x320 frame, the
+#: 8-32 px from the left and right edges: 15 %), and cost at most 1.5x the region's fits. On 240x320
+#: 8-bit bursts of 16 frames the least precise tenth erred 1.12-1.16x the written sigma_k measured along
+#: all 320 px, 1.12-1.30x on the central 256 (docs/limits.md, "Confidence").
+MEASURED_WHOLE = 1.5
 def scene_options(options: SceneOptions, grid) -> SceneOptions:
     """The scene solver's options on ``grid``: a photosite is ``1 / scale`` of the grid's pitch wide
     (a CFA plane's photosites are every other one of the mosaic)."""
