@@ -3,6 +3,7 @@
     python docs/bench/confidence.py [SCENES [PRESETS [FRAMES [EXPOSURES]]]]   # default: moon,camera paper,raw12 9,16 0.5,0.075
     python docs/bench/confidence.py fit [PARTNERS]   # the accurate solver's own sigma_k by frame count
     python docs/bench/confidence.py spec [SEEDS]     # the bench's confidence group at other seeds (default 1,2,3)
+    python docs/bench/confidence.py rggb640 [SEEDS]  # 640x480 12-bit RGGB dead leaves, 16 frames, per plane
 
 Bursts of 240x320 rendered from scikit-image's sample photographs (not a dependency of gainfpn:
 ``pip install scikit-image``), 8-bit mono (``paper``) and 12-bit RGGB (``raw12``), at 50 % and
@@ -17,6 +18,10 @@ the reported input pixel FPN against the truth. About 15 minutes for the default
 ``spec``: the bursts of ``gainfpn bench --group confidence`` (issue 21's: procedural and dead leaves,
 8-bit and 12-bit RGGB, 75 % and 15 % exposure, bursts of 5 and 16 frames) at SEEDS instead of its 7,
 one frame more each as above. About 5 minutes a seed.
+
+``rggb640``: 640x480 12-bit RGGB dead-leaves bursts of 16 frames (default seeds 0,1,2), the
+default config: the tenths over the whole map and over each colour plane (12 px inside). About 80 s
+a seed.
 
 ``fit``: dark procedural 240x320 bursts of the paper's sensor (7.5 % exposure, where k's error is
 the noise's) of 3, 4, 5, 6, 8 and 12 frames, solved by the accurate solver with the true motion
@@ -119,7 +124,30 @@ def spec(seeds=(1, 2, 3)):
                         print(json.dumps({**case(scene, preset, exposure, frames, seed), "seed": seed}), flush=True)
 
 
+def rggb640(seeds=(0, 1, 2)):
+    """One JSON line per seed: the tenths of a 640x480 RGGB burst's map, whole and per plane."""
+    s = PRESETS["raw12"]
+    for seed in seeds:
+        b = simulate_burst(shape=(480, 640), n_frames=16, sensor=s, scene="dead-leaves", seed=seed)
+        fr = b.frames.astype(np.float32) - s.black_level
+        e = api.estimate(fr, cfa=s.cfa, saturation=s.white_level - s.black_level, **{"solver.workers": 2})
+        k, conf, a = e.k[..., 0], e.confidence[..., 0], b.gain
+        use = np.zeros(a.shape, bool)
+        use[MARGIN:-MARGIN, MARGIN:-MARGIN] = True
+        use &= conf > 0
+        row = {"seed": seed}
+        for name, (dy, dx) in (("all", (0, 0)), ("R", (0, 0)), ("G1", (0, 1)), ("G2", (1, 0)), ("B", (1, 1))):
+            step = 1 if name == "all" else 2
+            at = (slice(dy, None, step), slice(dx, None, step))
+            row[name] = [round(d, 2) for d in confidence_deciles(k[at], a[at], sigma_from_confidence(conf[at]),
+                                                                 use[at])]
+        print(json.dumps(row), flush=True)
+
+
 if __name__ == "__main__":
+    if len(sys.argv) > 1 and sys.argv[1] == "rggb640":
+        rggb640([int(s) for s in sys.argv[2].split(",")] if len(sys.argv) > 2 else (0, 1, 2))
+        sys.exit()
     if len(sys.argv) > 1 and sys.argv[1] == "fit":
         fit(int(sys.argv[2]) if len(sys.argv) > 2 else 8)
         sys.exit()
