@@ -367,6 +367,8 @@ CHECK_SIDE = 256
 #: 8-bit bursts of 16 frames the least precise tenth erred 1.12-1.16x the written sigma_k measured along
 #: all 320 px, 1.12-1.30x on the central 256 (docs/limits.md, "Confidence").
 MEASURED_WHOLE = 1.5
+
+
 def scene_options(options: SceneOptions, grid) -> SceneOptions:
     """The scene solver's options on ``grid``: a photosite is ``1 / scale`` of the grid's pitch wide
     (a CFA plane's photosites are every other one of the mosaic)."""
