@@ -248,22 +248,15 @@ def _smooth(d_a: np.ndarray, d_b: np.ndarray, rows: np.ndarray, columns: np.ndar
     :func:`_shared` counts its excess: where the parts' means stand out of their block-jackknife
     standard errors beyond chance (:data:`SHARED_P`), each as far as it does. A pixel FPN with
     structure at this distance is read as error too: less correction, not a worse one."""
-    a = np.full(shape, np.nan)
-    b = np.full(shape, np.nan)
-    a[rows, columns] = d_a - d_a.mean()
-    b[rows, columns] = d_b - d_b.mean()
-    h, w = shape
-    total, count = np.zeros(shape), np.zeros(shape)
-    for dy in range(-LAG, LAG + 1):
-        for dx in range(-LAG, LAG + 1):
-            if max(abs(dy), abs(dx)) != LAG:
-                continue
-            here = (slice(max(0, -dy), h - max(0, dy)), slice(max(0, -dx), w - max(0, dx)))
-            product = a[here] * b[max(0, dy):h - max(0, -dy), max(0, dx):w - max(0, -dx)]
-            seen = np.isfinite(product)
-            total[here] += np.where(seen, product, 0.0)
-            count[here] += seen
-    lagged = _clipped(np.divide(total, count, out=np.zeros(shape), where=count > 0)[rows, columns], parts)
+    import cv2
+
+    b, seen = np.zeros(shape), np.zeros(shape)
+    b[rows, columns], seen[rows, columns] = d_b - d_b.mean(), 1.0
+    ring = np.ones((2 * LAG + 1, 2 * LAG + 1))
+    ring[1:-1, 1:-1] = 0  # the offsets at distance LAG, as local_sigma2's window
+    total, count = (cv2.filter2D(m, -1, ring, borderType=cv2.BORDER_CONSTANT)[rows, columns] for m in (b, seen))
+    lagged = np.divide((d_a - d_a.mean()) * total, count, out=np.zeros(count.shape), where=count > 0)
+    lagged = _clipped(lagged, parts)
     smooth = np.zeros(lagged.size)
     means, t2s = [], []
     for part in parts:
