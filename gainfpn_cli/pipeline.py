@@ -195,7 +195,7 @@ def _estimate(burst: LoadedBurst, cfg: Config, solver: solving.Solver, progress:
         if holdout:
             timings["holdout_s"] = sum(t.holdout_s for t in tried or [solved])
             if solved.failed:
-                warnings.append(checking.rejection(holdout_report, solved.failed))
+                warnings.append(checking.rejection(holdout_report, solved.failed, burst, n_fit))
     if codes is not None:  # no gain is known there; corrected frames repair them (output.repair)
         defective.add_hot(codes, solved.hot)  # those the scene model shows
         defective.leave_out(k, confidence, codes, burst.cfa, burst.channels)

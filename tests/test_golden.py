@@ -35,11 +35,12 @@ from gainfpn_cli.sim.simulate import simulate_burst
 from gainfpn_cli.sim.truth import save_burst
 
 GOLDEN = Path(__file__).parent / "golden"
-#: The bursts: 6 frames each, seeded; the RGGB one is a 12-bit DNG, so RAW reading, the green
-#: lattice and the per-plane gauge are all in the path.
+#: The bursts, seeded; the RGGB one is a 12-bit DNG, so RAW reading, the green lattice, the per-plane
+#: gauge and the halves' calibration are all in the path (7 frames: a mosaic fitted on fewer than 6 is
+#: written k = 1, checking.short_mosaic).
 BURSTS = {
     "mono_exr": dict(shape=(96, 128), n_frames=6, seed=21, fmt="exr", sensor="paper"),
-    "rggb_dng": dict(shape=(144, 176), n_frames=6, seed=22, fmt="dng", sensor="raw12"),
+    "rggb_dng": dict(shape=(144, 176), n_frames=7, seed=22, fmt="dng", sensor="raw12"),
 }
 #: How far k and confidence may be from a stored set. float32 k near 1: 1e-6 is a few ulps (6e-8
 #: each), more than a reordered sum changes, far less than any change of method (the estimate's own
