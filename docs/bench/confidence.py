@@ -4,6 +4,7 @@
     python docs/bench/confidence.py fit [PARTNERS]   # the accurate solver's own sigma_k by frame count
     python docs/bench/confidence.py spec [SEEDS]     # the bench's confidence group at other seeds (default 1,2,3)
     python docs/bench/confidence.py rggb640 [SEEDS]  # 640x480 12-bit RGGB dead leaves, 16 frames, per plane
+    python docs/bench/confidence.py short [FRAMES]   # 12-bit RGGB bursts of 5 and 6 frames (40)
 
 Bursts of 240x320 rendered from scikit-image's sample photographs (not a dependency of gainfpn:
 ``pip install scikit-image``), 8-bit mono (``paper``) and 12-bit RGGB (``raw12``), at 50 % and
@@ -22,6 +23,10 @@ one frame more each as above. About 5 minutes a seed.
 ``rggb640``: 640x480 12-bit RGGB dead-leaves bursts of 16 frames (default seeds 0,1,2), the
 default config: the tenths over the whole map and over each colour plane (12 px inside). About 80 s
 a seed.
+
+``short``: 12-bit RGGB bursts of FRAMES (default 5,6), fitted on one fewer: procedural and dead leaves at
+75 % and 15 % exposure, seeds 1-3, and ``camera``, ``moon``, ``chelsea`` and ``coffee`` at a mean of 7.5 % and
+40 % of full scale, seed 7, each with one frame more as above. About 6 minutes.
 
 ``fit``: dark procedural 240x320 bursts of the paper's sensor (7.5 % exposure, where k's error is
 the noise's) of 3, 4, 5, 6, 8 and 12 frames, solved by the accurate solver with the true motion
@@ -124,6 +129,18 @@ def spec(seeds=(1, 2, 3)):
                         print(json.dumps({**case(scene, preset, exposure, frames, seed), "seed": seed}), flush=True)
 
 
+def short(counts=(5, 6)):
+    """One JSON line per burst: RGGB bursts too short for halves (see the module)."""
+    for frames in counts:
+        for seed in (1, 2, 3):
+            for scene in ("procedural", "dead-leaves"):
+                for exposure in (0.75, 0.15):
+                    print(json.dumps({**case(scene, "raw12", exposure, frames, seed), "seed": seed}), flush=True)
+        for scene in ("camera", "moon", "chelsea", "coffee"):
+            for exposure in ("m7.5", "m40"):
+                print(json.dumps(case(scene, "raw12", exposure, frames)), flush=True)
+
+
 def rggb640(seeds=(0, 1, 2)):
     """One JSON line per seed: the tenths of a 640x480 RGGB burst's map, whole and per plane."""
     s = PRESETS["raw12"]
@@ -147,6 +164,9 @@ def rggb640(seeds=(0, 1, 2)):
 if __name__ == "__main__":
     if len(sys.argv) > 1 and sys.argv[1] == "rggb640":
         rggb640([int(s) for s in sys.argv[2].split(",")] if len(sys.argv) > 2 else (0, 1, 2))
+        sys.exit()
+    if len(sys.argv) > 1 and sys.argv[1] == "short":
+        short([int(f) for f in sys.argv[2].split(",")] if len(sys.argv) > 2 else (5, 6))
         sys.exit()
     if len(sys.argv) > 1 and sys.argv[1] == "fit":
         fit(int(sys.argv[2]) if len(sys.argv) > 2 else 8)

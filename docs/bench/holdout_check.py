@@ -3,7 +3,8 @@
     python docs/bench/holdout_check.py bias    # the check against two frames no fit saw
     python docs/bench/holdout_check.py rates   # false accepts and rejects on 48 simulated bursts
     python docs/bench/holdout_check.py short   # the same on short and very small bursts (42)
-    python docs/bench/holdout_check.py rggb    # RGGB bursts of 5 fitted frames, too few for halves (12)
+    python docs/bench/holdout_check.py rggb    # RGGB bursts of 5 fitted frames, too few for halves (12):
+                                               # written k = 1 (checking.short_mosaic); their unguarded maps
 
 Every burst is simulated with one frame more than the estimate gets: that unseen frame's MSE
 before over after correction says whether a map helps (frame 0 was fitted, and its MSE
