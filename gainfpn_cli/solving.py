@@ -105,7 +105,7 @@ def lost_band_counted(burst: LoadedBurst, frames: np.ndarray, homographies: np.n
             continue
         for name, pick, _ in plane_views(burst.cfa, burst.channels):
             report = reports.get(name)
-            if name not in grid.positions or report is None or report.fpn_model != "pixel" \
+            if name not in grid.positions or report is None or report.fpn_model not in ("pixel", "none") \
                     or not report.input_fpn_percent:
                 continue
             fpn = report.input_fpn_percent["pixel"] / 100.0

@@ -265,6 +265,16 @@ def test_the_pixel_model_shrinks_by_the_measured_error():
     assert np.std(measured.k - truth) < np.std(plain.k - truth)
 
 
+def test_the_none_model_writes_the_pixel_fpn_as_its_error():
+    # k = 1 errs by the pixel FPN (0.3 %), not by the per-pixel fit's error (0.4-1.6 % here): written as
+    # that, an 8-frame RGGB burst whose red, blue and one green took `none` read 0.13-1.09 in its tenths
+    truth, k, confidence, halves = _halves(np.random.default_rng(5), pixel=0.003)
+    model = select_model(k, confidence, halves=halves, force="none")
+    assert np.all(model.k == 1) and model.split["pixel"] == pytest.approx(0.3, rel=0.1)
+    error = model.k - truth
+    assert np.sqrt(np.mean(error**2)) / np.sqrt(np.mean(model.sigma**2)) == pytest.approx(1.0, abs=0.1)
+
+
 def test_an_error_the_full_fit_has_and_neither_half_does_is_counted():
     # a smooth 10 % dip in the full fit only (as comparisons of near frames left one at a frame edge of a
     # raw12 bench burst): the halves' Hausman difference reads it as less error, the departure from the

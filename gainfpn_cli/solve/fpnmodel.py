@@ -244,6 +244,11 @@ def select_model(k: np.ndarray, confidence: np.ndarray, *, force: str | None = N
     else:  # a structured model knows every pixel of a column / row parity it has seen
         model_k = fit.full(chosen)
         written_sigma = None if calibration is None else sigma
+        if calibration is not None and chosen == "none":  # k = 1 errs by the pixel FPN, the pixel model's
+            # sigma_k as its shrinkage goes to 0 (a prior read as 0 is 0 +- its standard error)
+            left = prior if chosen == fit.best else pixel_prior_variance((k - model_k)[est], sigma[est])
+            left = max(left, calibration.prior_se or 0.0)
+            written_sigma = np.where(est, np.float32(np.sqrt(left)), np.float32(np.inf))
     del shrink
     del deviation
     if est.any():
