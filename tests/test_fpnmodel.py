@@ -275,6 +275,28 @@ def test_the_none_model_writes_the_pixel_fpn_as_its_error():
     assert np.sqrt(np.mean(error**2)) / np.sqrt(np.mean(model.sigma**2)) == pytest.approx(1.0, abs=0.1)
 
 
+@pytest.mark.parametrize("pixel, along", [(0.0, 1), (0.002, 1), (0.0, 16)])
+def test_a_column_model_writes_the_error_of_its_gains_and_the_pixel_fpn_it_leaves(pixel, along):
+    # a column FPN of 1 %, k's error 0.4-1.6 % per pixel and the same over runs of ``along`` rows (a column
+    # gain then averages fewer independent errors): the written sigma_k, the per-pixel fit's before (over
+    # 10x too large), is the column gains' error and the pixel FPN together
+    rng = np.random.default_rng(6)
+    shape = (160, 200)
+    sigma = np.geomspace(0.002, 0.008, shape[1])[None, :] * np.ones(shape)
+    truth = (1 + 0.01 * rng.standard_normal(shape[1]))[None, :] * (1 + pixel * rng.standard_normal(shape))
+
+    def error():
+        e = 2 * np.sqrt(2) * sigma * rng.standard_normal(shape)
+        return np.repeat(e[::along], along, axis=0)[: shape[0]] if along > 1 else e
+
+    e_a, e_b = error(), error()
+    ones = np.ones(shape)
+    halves = Halves(truth + e_a, ones, truth + e_b, ones)
+    model = select_model(truth + (e_a + e_b) / 2, 1 / (1 + (sigma / 0.01) ** 2), halves=halves, force="column")
+    actual = model.k / model.k.mean() - truth / truth.mean()
+    assert np.sqrt(np.mean(actual**2)) / np.sqrt(np.mean(model.sigma**2)) == pytest.approx(1.0, abs=0.15)
+
+
 def test_an_error_the_full_fit_has_and_neither_half_does_is_counted():
     # a smooth 10 % dip in the full fit only (as comparisons of near frames left one at a frame edge of a
     # raw12 bench burst): the halves' Hausman difference reads it as less error, the departure from the

@@ -5,6 +5,7 @@
     python docs/bench/confidence.py spec [SEEDS]     # the bench's confidence group at other seeds (default 1,2,3)
     python docs/bench/confidence.py rggb640 [SEEDS]  # 640x480 12-bit RGGB dead leaves, 16 frames, per plane
     python docs/bench/confidence.py short [FRAMES]   # 12-bit RGGB bursts of 5 and 6 frames (40)
+    python docs/bench/confidence.py structured       # sensors with column or row FPN (18)
 
 Bursts of 240x320 rendered from scikit-image's sample photographs (not a dependency of gainfpn:
 ``pip install scikit-image``), 8-bit mono (``paper``) and 12-bit RGGB (``raw12``), at 50 % and
@@ -27,6 +28,10 @@ a seed.
 ``short``: 12-bit RGGB bursts of FRAMES (default 5,6), fitted on one fewer: procedural and dead leaves at
 75 % and 15 % exposure, seeds 1-3, and ``camera``, ``moon``, ``chelsea`` and ``coffee`` at a mean of 7.5 % and
 40 % of full scale, seed 7, each with one frame more as above. About 6 minutes.
+
+``structured``: 240x320 bursts of sensors whose gain FPN is mostly per column or per row parity (8-bit
+mono of 8 frames, 12-bit RGGB of 9; seeds 1 and 2), each with one frame more: the FPN models chosen, the
+RMS of k's actual error and of the written sigma_k, and the tenths. About 4 minutes.
 
 ``fit``: dark procedural 240x320 bursts of the paper's sensor (7.5 % exposure, where k's error is
 the noise's) of 3, 4, 5, 6, 8 and 12 frames, solved by the accurate solver with the true motion
@@ -141,6 +146,49 @@ def short(counts=(5, 6)):
                 print(json.dumps(case(scene, "raw12", exposure, frames)), flush=True)
 
 
+#: ``structured``'s sensors: preset, pixel, column and row FPN, exposure, scene, frames.
+STRUCTURED = [
+    ("paper", 0.0, 0.02, 0.0, 0.75, "procedural", 8),
+    ("paper", 0.0, 0.02, 0.0, 0.75, "dead-leaves", 8),
+    ("paper", 0.003, 0.02, 0.0, 0.75, "procedural", 8),
+    ("paper", 0.0, 0.0, 0.02, 0.75, "procedural", 8),
+    ("paper", 0.002, 0.0, 0.0, 0.3, "procedural", 8),
+    ("paper", 0.005, 0.0, 0.0, 0.075, "dead-leaves", 8),
+    ("raw12", 0.002, 0.0, 0.0, 0.5, "procedural", 9),
+    ("raw12", 0.0, 0.01, 0.0, 0.5, "procedural", 9),
+    ("raw12", 0.003, 0.0, 0.0, 0.15, "dead-leaves", 9),
+]
+
+
+def structured():
+    """One JSON line per burst of a sensor with structured FPN (see the module)."""
+    import dataclasses
+
+    for preset, pixel, column, row_, exposure, scene, frames in STRUCTURED:
+        for seed in (1, 2):
+            s = dataclasses.replace(PRESETS[preset], fpn_pixel=pixel, fpn_column=column, fpn_row=row_)
+            b = simulate_burst(shape=(240, 320), n_frames=frames + 1, sensor=s, exposure=exposure, scene=scene,
+                               seed=seed)
+            fr = b.frames.astype(np.float32) - s.black_level
+            e = api.estimate(fr[:-1], cfa=s.cfa, saturation=s.white_level - s.black_level, **{"solver.workers": 2})
+            k, conf, a = e.k[..., 0], e.confidence[..., 0], b.gain
+            use = np.zeros(a.shape, bool)
+            use[MARGIN:-MARGIN, MARGIN:-MARGIN] = True
+            unseen, ideal = fr[-1][use], b.ideal[-1][use]
+            mse = float(np.mean((unseen - ideal) ** 2) / np.mean((k[use] * unseen - ideal) ** 2))
+            use &= conf > 0
+            row = dict(preset=preset, pixel=pixel, column=column, row=row_, exposure=exposure, scene=scene,
+                       frames=frames, seed=seed, status=e.report.status, mse_unseen=round(mse, 4),
+                       models={name: plane.fpn_model for name, plane in e.report.planes.items()})
+            if use.any():
+                p = k * a
+                err, sigma = p / p[use].mean() - 1, sigma_from_confidence(conf)
+                row.update(error=round(float(100 * np.sqrt(np.mean(err[use] ** 2))), 4),
+                           sigma=round(float(100 * np.sqrt(np.mean(sigma[use] ** 2))), 4),
+                           deciles=[round(d, 2) for d in confidence_deciles(k, a, sigma, use)])
+            print(json.dumps(row), flush=True)
+
+
 def rggb640(seeds=(0, 1, 2)):
     """One JSON line per seed: the tenths of a 640x480 RGGB burst's map, whole and per plane."""
     s = PRESETS["raw12"]
@@ -167,6 +215,9 @@ if __name__ == "__main__":
         sys.exit()
     if len(sys.argv) > 1 and sys.argv[1] == "short":
         short([int(f) for f in sys.argv[2].split(",")] if len(sys.argv) > 2 else (5, 6))
+        sys.exit()
+    if len(sys.argv) > 1 and sys.argv[1] == "structured":
+        structured()
         sys.exit()
     if len(sys.argv) > 1 and sys.argv[1] == "fit":
         fit(int(sys.argv[2]) if len(sys.argv) > 2 else 8)

@@ -8,9 +8,7 @@ Candidates, from fewest parameters to most:
 * ``column+row``: both;
 * ``pixel``: every pixel's own gain on top of the best structured model.
 
-A structured model averages each gain over a whole column or half the rows,
-so it is far less noisy than per-pixel k when the sensor's FPN really is
-structured. The choice minimises Akaike's criterion
+The choice minimises Akaike's criterion
 
     AIC = sum_q ((k(q) - model(q)) / sigma_k(q))^2 + 2 p,
 
@@ -24,26 +22,20 @@ own, ``sum w`` (the trace of the shrinkage; Hastie & Tibshirani 1990), so a
 pixel FPN the noise hides adds next to nothing and loses by the prior's one.
 (With the solver's sigma_k, too small on most bursts, the prior takes up the
 noise it misses and that score would pick the pixel model on a column-FPN
-sensor.) AIC
-estimates the prediction error on held-out data (it is asymptotically
-leave-one-out cross-validation, Stone 1977), which is what matters when the
-map corrects other captures. AIC counts the pixels as independent, so an error that runs along
+sensor.) AIC estimates the prediction error on held-out data (asymptotically leave-one-out
+cross-validation, Stone 1977). It counts the pixels as independent, so an error that runs along
 part of a column (interpolating a vertical edge) fits a column model as well as column FPN does;
 where k's error is measured (halves, below) a column model is a candidate only if column gains
 fitted on the top and bottom halves of the plane apart agree (:func:`column_agreement`), as a
 sensor's column FPN does and an edge's does not.
 
-Once chosen, the pixel model does not take each pixel's k as it is: a pixel
-whose k is uncertain would carry its whole estimation error into the
-correction. Its deviation ``d`` from the best structured model is shrunk to
-its posterior mean under a normal prior of the sensor's pixel FPN, ``w d``
-with ``w = s^2 / (s^2 + sigma_k^2)`` (empirical Bayes; ``s^2`` by the
-Paule-Mandel equation ``sum d^2 / (s^2 + sigma_k^2) = N``, each term of which
-expects 1). ``s`` comes out as the sensor's pixel FPN plus whatever the
-solver's ``sigma_k`` misses. Measured (MSE reduction without -> with the
-shrinkage; 320x240x8, motion estimated, all 8 frames fitted): dead leaves
-11.7x -> 13.8x; with a 1 px distortion 9.1x -> 13.0x; a raw12 CFA burst of
-the procedural scene 0.7x -> 1.3x; a procedural scene 23.2x -> 23.8x.
+Once chosen, the pixel model shrinks each pixel's deviation ``d`` from the best structured model to
+its posterior mean under a normal prior of the sensor's pixel FPN, ``w d`` with
+``w = s^2 / (s^2 + sigma_k^2)`` (empirical Bayes; ``s^2`` by the Paule-Mandel equation
+``sum d^2 / (s^2 + sigma_k^2) = N``, each term of which expects 1), so that a pixel whose k is
+uncertain does not carry its estimation error into the correction (measured: docs/method.md
+section 11). The written ``sigma_k`` is the written k's: the posterior's for the pixel model, the
+pixel FPN a structured model leaves (``s``) with the error of its own gains (:func:`base_variance`).
 
 Given two more fits on disjoint halves of the frames (:class:`Halves`), both
 are measured instead (:func:`calibrate`): the halves' errors are nearly
@@ -70,7 +62,7 @@ import numpy as np
 
 from ..metrics import chi2_quantile, robust_spread
 from . import FPN_MODELS
-from .halves import Calibration, Halves, calibrate, covariance, departure
+from .halves import MIN_PARTS, PART_PIXELS, Calibration, Halves, calibrate, covariance, departure
 from .result import regauge, sigma_from_confidence
 
 MODELS = FPN_MODELS
@@ -88,19 +80,15 @@ class FPNModel:
     scores : dict
         AIC of every candidate (lower is better).
     split : dict
-        Estimated input gain FPN in percent: ``pixel``, ``column``, ``row``
-        (spread of the gains ``1 / k`` attributed to each part; the pixel
-        part is the prior's ``s``: the spread of k less its estimation noise).
+        Estimated input gain FPN in percent: ``pixel``, ``column``, ``row`` (spread of the gains
+        ``1 / k`` attributed to each part; the pixel part is the prior's ``s``).
     calibration : Calibration or None
         What two halves of the frames measured (or were given), if anything.
     sigma : ndarray of float32 or None
-        With a calibration, the predicted standard error of each written k:
-        the calibrated ``sigma_k`` shrunk with k (``sqrt(w) sigma_k``) by the
-        pixel model, as it is under a structured one (an upper bound there).
+        With a calibration, the predicted standard error of each written k (see the module).
     column_agreement : float
-        How far column gains fitted on the top and bottom halves apart agree, in standard errors
-        (:func:`column_agreement`): the column models are candidates at :data:`COLUMN_Z` or more.
-        NaN where the gate is not applied (k's error not measured on halves; too few columns).
+        Column gains fitted on the plane's top and bottom halves apart agree by this many standard
+        errors (:func:`column_agreement`; NaN where the gate is not applied; :data:`COLUMN_Z`).
     base : str
         The structured model the map is built on: the chosen one, or the one the pixel model shrinks
         toward (its column or row gains are in the written k either way).
@@ -239,16 +227,20 @@ def select_model(k: np.ndarray, confidence: np.ndarray, *, force: str | None = N
     written_sigma = None
     if chosen == "pixel":
         model_k = np.where(est, fit.base + shrink * deviation, np.float32(1))
-        if calibration is not None:
-            written_sigma = np.where(est, np.sqrt(shrink) * np.where(est, sigma, 0), np.float32(np.inf))
+        if calibration is not None:  # the posterior's, and the base's own error where it is not shrunk away
+            written_sigma, base = np.sqrt(shrink) * np.where(est, sigma, 0), base_variance(fit.best, halves, est)
+            if base > 0:
+                written_sigma = np.sqrt(written_sigma**2 + (1 - shrink) ** 2 * np.float32(base))
+            written_sigma = np.where(est, written_sigma, np.float32(np.inf))
     else:  # a structured model knows every pixel of a column / row parity it has seen
         model_k = fit.full(chosen)
-        written_sigma = None if calibration is None else sigma
-        if calibration is not None and chosen == "none":  # k = 1 errs by the pixel FPN, the pixel model's
-            # sigma_k as its shrinkage goes to 0 (a prior read as 0 is 0 +- its standard error)
+        written_sigma = None if calibration is None else sigma  # without halves an upper bound
+        if calibration is not None and (chosen == "none" or halves is not None):  # k errs by the pixel FPN it
+            # leaves (the pixel model's sigma_k as its shrinkage goes to 0), by its gains' error, or the prior's SE
             left = prior if chosen == fit.best else pixel_prior_variance((k - model_k)[est], sigma[est])
-            left = max(left, calibration.prior_se or 0.0)
-            written_sigma = np.where(est, np.float32(np.sqrt(left)), np.float32(np.inf))
+            left += base_variance(chosen, halves, est)
+            written_sigma = np.where(est, np.float32(np.sqrt(left if left > 0 else calibration.prior_se or 0.0)),
+                                     np.float32(np.inf))
     del shrink
     del deviation
     if est.any():
@@ -262,6 +254,23 @@ def select_model(k: np.ndarray, confidence: np.ndarray, *, force: str | None = N
     }
     return FPNModel(model_k.astype(np.float32), chosen, scores, split, calibration, written_sigma, fit.column_z,
                     chosen if chosen != "pixel" else fit.best)
+
+
+def base_variance(model: str, halves: Halves | None, est: np.ndarray) -> float:
+    """The error variance of the column gains of ``model`` on the plane (``est``): ``var(a - b) / 4`` of
+    their fits on the ``halves`` (errors each twice the whole fit's; the pixel FPN averages alike in both),
+    times the share of the plane the halves see. 0 without column gains (a row parity's, fitted on half
+    the plane, errs far less than two halves' shakes differ in showing it), halves or the pixels their
+    calibration asks (:data:`MIN_PARTS` parts)."""
+    both = est if halves is None else est & (halves.confidence_a > 0) & (halves.confidence_b > 0)
+    if halves is None or "column" not in model or both.sum() < MIN_PARTS * PART_PIXELS:
+        return 0.0
+    maps = []
+    for k_half, confidence in ((halves.k_a, halves.confidence_a), (halves.k_b, halves.confidence_b)):
+        sigma = np.maximum(sigma_from_confidence(np.where(both, confidence, 1)), 1e-6).astype(np.float32)
+        gains = _Fits.of(np.asarray(k_half, np.float32), sigma, both, gate=False).full("column")[both]
+        maps.append(gains / gains.mean(dtype=np.float64))
+    return float(np.mean((maps[0] - maps[1]) ** 2, dtype=np.float64)) / 4 * float(both.sum() / est.sum())
 
 
 @dataclass(frozen=True)
@@ -278,10 +287,9 @@ class Measured:
 def measure(k: np.ndarray, confidence: np.ndarray, halves: Halves) -> Measured:
     """What :func:`select_model` measures of a plane with ``halves``, to pool its calibration with
     other planes' (:func:`pooled_priors`) before the model is chosen with it (``measured=``)."""
-    k = np.asarray(k, np.float32)
-    confidence = np.asarray(confidence, np.float32)
-    sigma = np.maximum(sigma_from_confidence(confidence), 1e-6).astype(np.float32)
-    return Measured(*_measured(k, sigma, confidence > 0, halves))
+    k, confidence = np.asarray(k, np.float32), np.asarray(confidence, np.float32)
+    return Measured(*_measured(k, np.maximum(sigma_from_confidence(confidence), 1e-6).astype(np.float32),
+                               confidence > 0, halves))
 
 
 def _measured(k: np.ndarray, sigma: np.ndarray, est: np.ndarray, halves: Halves,
@@ -398,9 +406,7 @@ class _Fits:
 #: by at least this many standard errors for a column model to be a candidate, on a plane whose k's
 #: error is measured (two halves of the frames). Measured (240x320 8-bit, 3 % pixel FPN): 1.3 / 0.4 with
 #: no column FPN, 3.4 / 4.3 with 0.2 %, 8.6-12.6 with 0.5-4 %; 38 planes of bursts without column FPN
-#: -2.7 to 3.0 (docs/method.md section 11). Without halves the solver's sigma_k misses what k learned of
-#: an aliased plane and the pixel model takes it for FPN; a column base turned away there let such a map
-#: through the hold-out check (aliased RGGB, 5 fitted frames: 0.935x), so the gate is not applied.
+#: -2.7 to 3.0 (docs/method.md section 11). Without halves the gate is not applied (docs/limits.md).
 COLUMN_Z = 4.0
 
 
