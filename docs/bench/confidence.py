@@ -30,8 +30,8 @@ a seed.
 40 % of full scale, seed 7, each with one frame more as above. About 6 minutes.
 
 ``structured``: 240x320 bursts of sensors whose gain FPN is mostly per column or per row parity (8-bit
-mono of 8 frames, 12-bit RGGB of 9; seeds 1 and 2), each with one frame more: the FPN models chosen, the
-RMS of k's actual error and of the written sigma_k, and the tenths. About 4 minutes.
+mono of 8 frames, 12-bit RGGB of 9; seeds 1 and 2), each with one frame more, as above (``error`` and
+``sigma``: the RMS of k's actual error and of the written sigma_k). About 4 minutes.
 
 ``fit``: dark procedural 240x320 bursts of the paper's sensor (7.5 % exposure, where k's error is
 the noise's) of 3, 4, 5, 6, 8 and 12 frames, solved by the accurate solver with the true motion
@@ -67,9 +67,10 @@ def scene_of(name):
     return img ** 2.2
 
 
-def case(scene, preset, exposure, frames, seed=7):
-    """One burst's figures (see the module); ``exposure`` a number, or ``mL`` for a mean level of L %."""
-    s = PRESETS[preset]
+def case(scene, preset, exposure, frames, seed=7, sensor=None):
+    """One burst's figures (see the module); ``exposure`` a number, or ``mL`` for a mean level of L %;
+    ``sensor`` the preset's, or one given."""
+    s = sensor or PRESETS[preset]
     image = scene_of(scene)
     if isinstance(exposure, str) and exposure.startswith("m"):
         exposure = round(float(exposure[1:]) / 100 / (float(np.mean(image)) if np.ndim(image) else 0.5), 4)
@@ -88,11 +89,14 @@ def case(scene, preset, exposure, frames, seed=7):
     p = k * a
     err = p / p[use].mean() - 1
     estimated = bool(use.any())  # none if every plane was rejected
-    deciles = [round(d, 2) for d in confidence_deciles(k, a, sigma_from_confidence(conf), use)]
+    sigma = sigma_from_confidence(conf)
+    deciles = [round(d, 2) for d in confidence_deciles(k, a, sigma, use)]
     level = round(100 * float(fr[:-1].mean()) / (s.white_level - s.black_level), 2)
     return dict(scene=scene, preset=preset, exposure=exposure, level=level, frames=frames, s=round(dt, 1),
                 status=e.report.status,
                 mse_unseen=round(mse, 3), residual=round(float(100 * np.std(err[use])), 3) if estimated else None,
+                error=round(float(100 * np.sqrt(np.mean(err[use] ** 2))), 4) if estimated else None,
+                sigma=round(float(100 * np.sqrt(np.mean(sigma[use] ** 2))), 4) if estimated else None,
                 prnu_pixel=round(e.report.prnu_percent.pixel, 2),
                 truth_pixel=round(100 * float(np.std(a / a.mean())), 2), deciles=deciles,
                 models={name: plane.fpn_model for name, plane in e.report.planes.items()},
@@ -166,27 +170,9 @@ def structured():
 
     for preset, pixel, column, row_, exposure, scene, frames in STRUCTURED:
         for seed in (1, 2):
-            s = dataclasses.replace(PRESETS[preset], fpn_pixel=pixel, fpn_column=column, fpn_row=row_)
-            b = simulate_burst(shape=(240, 320), n_frames=frames + 1, sensor=s, exposure=exposure, scene=scene,
-                               seed=seed)
-            fr = b.frames.astype(np.float32) - s.black_level
-            e = api.estimate(fr[:-1], cfa=s.cfa, saturation=s.white_level - s.black_level, **{"solver.workers": 2})
-            k, conf, a = e.k[..., 0], e.confidence[..., 0], b.gain
-            use = np.zeros(a.shape, bool)
-            use[MARGIN:-MARGIN, MARGIN:-MARGIN] = True
-            unseen, ideal = fr[-1][use], b.ideal[-1][use]
-            mse = float(np.mean((unseen - ideal) ** 2) / np.mean((k[use] * unseen - ideal) ** 2))
-            use &= conf > 0
-            row = dict(preset=preset, pixel=pixel, column=column, row=row_, exposure=exposure, scene=scene,
-                       frames=frames, seed=seed, status=e.report.status, mse_unseen=round(mse, 4),
-                       models={name: plane.fpn_model for name, plane in e.report.planes.items()})
-            if use.any():
-                p = k * a
-                err, sigma = p / p[use].mean() - 1, sigma_from_confidence(conf)
-                row.update(error=round(float(100 * np.sqrt(np.mean(err[use] ** 2))), 4),
-                           sigma=round(float(100 * np.sqrt(np.mean(sigma[use] ** 2))), 4),
-                           deciles=[round(d, 2) for d in confidence_deciles(k, a, sigma, use)])
-            print(json.dumps(row), flush=True)
+            sensor = dataclasses.replace(PRESETS[preset], fpn_pixel=pixel, fpn_column=column, fpn_row=row_)
+            row = case(scene, preset, exposure, frames, seed, sensor)
+            print(json.dumps({**row, "pixel": pixel, "column": column, "row": row_, "seed": seed}), flush=True)
 
 
 def rggb640(seeds=(0, 1, 2)):
