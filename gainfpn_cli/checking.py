@@ -89,8 +89,9 @@ def rejection(holdout: Holdout, failed, burst, n_fit: int) -> str:
         return (f"a CFA mosaic fitted on {n_fit} frames: with fewer than {solving.MIN_SPLIT_FRAMES} no two halves "
                 f"of them measure how far k errs, and the hold-out frame alone lets maps worse than none through, "
                 f"so k = 1 (no correction) was written (residual ratio with k over without "
-                f"{holdout.residual_ratio:.3f}); capture {solving.MIN_SPLIT_FRAMES + 1} or more frames, or set "
-                f"output.holdout: false to fit all {n_fit + 1} unchecked (their confidence then not calibrated)")
+                f"{holdout.residual_ratio:.3f}), and its PRNU is not reported; capture {solving.MIN_SPLIT_FRAMES + 1} "
+                f"or more frames, or set output.holdout: false to fit all {n_fit + 1} unchecked (their confidence "
+                f"then not calibrated)")
     which = "the estimate" if len(failed) == len(holdout.planes) else "the " + ", ".join(g.name for g in failed)
     ratios = ", ".join(f"{g.name} {holdout.planes[g.name].residual_ratio:.3f} +- "
                        f"{holdout.planes[g.name].standard_error:.3f}" for g in failed)

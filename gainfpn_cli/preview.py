@@ -77,7 +77,7 @@ def write_preview(path: Path, k: np.ndarray, confidence: np.ndarray, *, report: 
     hist_ax.set_title(f"k of the estimated pixels\nrobust sigma {spread:.2f} %", fontsize=10)
 
     line1 = f"{name}: {len(report.inputs)} frames, motion {report.motion.model}, FPN model {report.fpn_models}"
-    line2 = prnu_text(report.prnu_percent) + after_text(report)
+    line2 = prnu_text(report.prnu_percent, report) + after_text(report)
     fig.suptitle(f"{line1}\n{line2}; {holdout_text(report.holdout)}", fontsize=11)
 
     from .files import atomic_output

@@ -8,10 +8,12 @@ from pathlib import Path
 from .report import Holdout, Prnu, Report
 
 
-def prnu_text(prnu: Prnu) -> str:
-    """``PRNU 5.02 % (pixel 4.98, column 0.41, row 0.12 %)``, or what is missing."""
+def prnu_text(prnu: Prnu, report: Report | None = None) -> str:
+    """``PRNU 5.02 % (pixel 4.98, column 0.41, row 0.12 %)``, or what is missing (and why, from ``report``:
+    the paper method has no FPN model; a CFA mosaic too short to measure it is in the warnings)."""
     if prnu.total is None:
-        return "PRNU not measured (the paper method has no FPN model)"
+        paper = report is None or any(p.method == "paper" for p in report.planes.values())
+        return "PRNU not measured" + (" (the paper method has no FPN model)" if paper else " (see the warnings)")
     return f"PRNU {prnu.total:.2f} % (pixel {prnu.pixel:.2f}, column {prnu.column:.2f}, row {prnu.row:.2f} %)"
 
 
@@ -44,7 +46,7 @@ def defects_text(defects) -> str:
 def estimate_line(report: Report, out_dir: Path) -> str:
     """The line ``estimate`` prints: what the lab measures first, then how it was obtained."""
     spread = report.exposure_spread_percent
-    return (f"{prnu_text(report.prnu_percent)}{after_text(report)}; {holdout_text(report.holdout)}; "
+    return (f"{prnu_text(report.prnu_percent, report)}{after_text(report)}; {holdout_text(report.holdout)}; "
             f"{len(report.inputs)} frames, motion {report.motion.model}, FPN model {report.fpn_models}, "
             f"{report.estimated_percent:.0f} % of pixels estimated"
             + (f", exposures differ by up to {spread:.1f} % (divided out)" if spread > 0 else "")

@@ -15,6 +15,7 @@ at 16.8x-20.5x (8-bit) and 1.07x-1.25x (RGGB).
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -24,6 +25,7 @@ from gainfpn_cli.errors import EstimationError
 from gainfpn_cli.sim.motion import Shake
 from gainfpn_cli.sim.sensor import PRESETS
 from gainfpn_cli.sim.simulate import simulate_burst
+from gainfpn_cli.summary import estimate_line
 
 SHAPE = (160, 192)  # RGGB frames need 128 px a side for motion to be tracked (on 2x2 cells)
 MARGIN = 12  # px left out at the border, where trajectories leave the frame
@@ -119,6 +121,8 @@ def test_a_mosaic_too_short_to_measure_its_error_is_not_corrected():
     assert est.report.status == "rejected" and np.all(est.k == 1) and np.all(est.confidence == 0)
     assert any("a CFA mosaic fitted on 4 frames" in w and "capture 7 or more frames" in w
                for w in est.report.warnings), est.report.warnings
+    assert est.report.prnu_percent.total is None  # measured on the same halves, so not reported either
+    assert estimate_line(est.report, Path("out")).startswith("PRNU not measured (see the warnings); hold-out rejected")
 
 
 @pytest.mark.parametrize("seed", SEEDS)
