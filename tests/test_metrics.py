@@ -77,6 +77,16 @@ def _evaluated(tmp_path, *simulate):
     return sim, out, result
 
 
+def test_evaluate_scores_a_map_written_k_1_as_no_correction(tmp_path):
+    # a RAW burst of 5 frames is written k = 1 (checking.short_mosaic): what its frames get is scored,
+    # where evaluate refused it before ("the gain map has no estimated pixel")
+    sim, out, result = _evaluated(tmp_path, "--preset", "raw12", "--size", "160x128", "--frames", "5", "--seed", "2")
+    scores = json.loads((out / "evaluation.json").read_text())
+    assert scores["estimated_percent"] == 0 and scores["confidence_deciles"] == []
+    assert scores["residual_fpn_percent"] == scores["input_fpn_percent"] > 0.5
+    assert scores["mse_after"] == scores["mse_before"] and "MSE reduction 1.0x" in result.output
+
+
 def test_evaluate_reports_the_bound_and_the_estimate_does_not_pass_it(tmp_path):
     # a 12-bit RGGB burst (sample_data's): 1 % pixel FPN, 8 frames, one held out to check
     sim, out, result = _evaluated(tmp_path, "--preset", "raw12", "--size", "160x128", "--frames", "8", "--seed", "2")

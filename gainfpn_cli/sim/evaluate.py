@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import EstimationError, InputError
+from ..errors import InputError
 from ..files import ATTR_CFA, find_frames, read_exr_planes, read_frame, stamp
 from ..geometry.planes import plane_views
 from ..metrics import confidence_deciles, mse, residual_fpn_percent
@@ -38,13 +38,15 @@ def evaluate(out_dir: Path, sim_dir: Path) -> dict:
     est = confidence > 0
     # a defective photosite's error is not a gain's (a hot one's offset, a dead or stuck one's reading):
     # the gain figures are the healthy photosites', the defects counted apart
-    scored = est if truth.defects is None else est & (truth.defects == 0)
-    if not scored.any():
-        raise EstimationError(f"{out_dir}: the gain map has no estimated pixel")
+    healthy = np.ones(est.shape, bool) if truth.defects is None else truth.defects == 0
+    scored = est & healthy
+    written = bool(scored.any())  # else k = 1 everywhere (the check turned every plane away): scored as
+    if not written:  # the frames get it, no correction, and the confidence states nothing to score
+        scored = healthy
     result = {**scores(k[..., 0], scored, first.data[..., 0], truth), "estimated_percent": 100.0 * float(est.mean())}
     n_fit = len(report.inputs) - (1 if report.holdout else 0)  # one frame is held out to check k
     bound = residual_bound_percent(truth, scored, n_fit)
-    deciles = confidence_deciles(k[..., 0], truth.gain, sigma_from_confidence(confidence), scored)
+    deciles = confidence_deciles(k[..., 0], truth.gain, sigma_from_confidence(confidence), scored) if written else []
     result.update(residual_bound_percent=bound, bound_frames=n_fit, confidence_deciles=deciles,
                   plane_residual_fpn_percent=plane_residuals(k[..., 0], scored, truth.gain, attrs.get(ATTR_CFA)))
     if truth.defects is not None:
