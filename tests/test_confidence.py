@@ -136,3 +136,22 @@ def test_sixteen_frames_count_the_error_both_halves_make_alike(seed):
     assert all(p.confidence_calibrated for p in result.report.planes.values())
     ratios = _deciles(result, burst)
     assert all(0.75 <= r <= 1.25 for r in ratios), ratios
+
+
+@pytest.mark.parametrize("preset, holds", [("default", True), ("balanced", True), ("accurate", True), ("fast", False)])
+def test_the_halves_factors_give_way_to_the_models_burst_where_the_full_fit_is_not_the_more_precise(preset, holds):
+    # fast (2 partners, GMRES to 3e-2): its halves read factors of 1.43-2.05 and the written sigma_k was
+    # 1.1-1.75x k's error (640x480x8 procedural, seed 5: tenths 0.57-0.90, with the model's burst's 0.87-1.01)
+    from gainfpn_cli import solving
+    from gainfpn_cli.config import load_config
+    from gainfpn_cli.solve import bootstrap
+    from gainfpn_cli.solve.halves import Calibration
+
+    cfg = load_config(preset=None if preset == "default" else preset)
+    assert solving.hausman_holds(solving.Solver.from_config(cfg.solver, mosaic=False).accurate) is holds
+    halves = Calibration(np.log([0.01, 0.02]), np.array([1.8, 1.5]), 1e-4, prior_se=1e-5)
+    floor = Calibration(np.log([0.01, 0.03]), np.array([1.0, 1.1]), None)
+    raised, instead = bootstrap.raised(halves, floor), bootstrap.instead(halves, floor)
+    np.testing.assert_allclose(instead.factor, floor.factor)
+    assert instead.prior == halves.prior and instead.prior_se == halves.prior_se
+    assert np.all(raised.factor >= 1.5)  # the larger of the two everywhere

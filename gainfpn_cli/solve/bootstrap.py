@@ -124,3 +124,14 @@ def raised(calibration: Calibration | None, floor: Calibration | None) -> Calibr
     factor = np.maximum(np.interp(at, calibration.log_sigma, calibration.factor),
                         np.interp(at, floor.log_sigma, floor.factor))
     return dataclasses.replace(calibration, log_sigma=at, factor=factor)
+
+
+def instead(calibration: Calibration | None, floor: Calibration | None) -> Calibration | None:
+    """The halves' ``calibration`` with the factors ``floor`` measured on the burst the scene model predicts
+    in place of its own, its prior kept: for a fit the halves' Hausman difference does not measure, one
+    less precise than either half (:func:`solving.hausman_holds`)."""
+    if floor is None:
+        return calibration
+    if calibration is None or not calibration.measured:
+        return floor
+    return dataclasses.replace(calibration, log_sigma=floor.log_sigma, factor=floor.factor)
