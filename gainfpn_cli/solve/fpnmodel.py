@@ -12,45 +12,39 @@ The choice minimises Akaike's criterion
 
     AIC = sum_q ((k(q) - model(q)) / sigma_k(q))^2 + 2 p,
 
-``sigma_k`` the solver's predicted standard error of each k and ``p`` the
-parameters beyond the overall scale (the gauge fixes it for every model):
-0, 1, W - 1, W and N - 1 (every pixel's own k, which fits exactly). With
-``sigma_k`` calibrated (below), the pixel model is scored as written (shrunk):
-its misfit ``sum ((1 - w) d / sigma_k)^2`` and the best structured model's
-parameters plus one for the prior's variance and the effective number of its
-own, ``sum w`` (the trace of the shrinkage; Hastie & Tibshirani 1990), so a
-pixel FPN the noise hides adds next to nothing and loses by the prior's one.
-(With the solver's sigma_k, too small on most bursts, the prior takes up the
-noise it misses and that score would pick the pixel model on a column-FPN
-sensor.) AIC estimates the prediction error on held-out data (asymptotically leave-one-out
-cross-validation, Stone 1977). It counts the pixels as independent, so an error that runs along
-part of a column (interpolating a vertical edge) fits a column model as well as column FPN does;
-where k's error is measured (halves, below) a column model is a candidate only if column gains
-fitted on the top and bottom halves of the plane apart agree (:func:`column_agreement`), as a
-sensor's column FPN does and an edge's does not.
+``sigma_k`` the solver's predicted standard error of each k and ``p`` the parameters beyond the overall
+scale (the gauge fixes it for every model): 0, 1, W - 1, W and N - 1 (every pixel's own k, which fits
+exactly). With ``sigma_k`` calibrated (below), the pixel model is scored as written (shrunk): its misfit
+``sum ((1 - w) d / sigma_k)^2`` and the best structured model's parameters plus one for the prior's
+variance and the effective number of its own, ``sum w`` (the trace of the shrinkage; Hastie & Tibshirani
+1990), so a pixel FPN the noise hides adds next to nothing and loses by the prior's one. (With the
+solver's sigma_k, too small on most bursts, the prior takes up the noise it misses and that score would
+pick the pixel model on a column-FPN sensor.) AIC estimates the prediction error on held-out data
+(asymptotically leave-one-out cross-validation, Stone 1977). It counts the pixels as independent, so an
+error that runs along part of a column (interpolating a vertical edge) fits a column model as well as
+column FPN does; where k's error is measured (halves, below) a column model is a candidate only if
+column gains fitted on the top and bottom halves of the plane apart agree (:func:`column_agreement`), as
+a sensor's column FPN does and an edge's does not.
 
-Once chosen, the pixel model shrinks each pixel's deviation ``d`` from the best structured model to
-its posterior mean under a normal prior of the sensor's pixel FPN, ``w d`` with
-``w = s^2 / (s^2 + sigma_k^2)`` (empirical Bayes; ``s^2`` by the Paule-Mandel equation
-``sum d^2 / (s^2 + sigma_k^2) = N``, each term of which expects 1), so that a pixel whose k is
-uncertain does not carry its estimation error into the correction (measured: docs/method.md
-section 11). The written ``sigma_k`` is the written k's: the posterior's for the pixel model, the
-pixel FPN a structured model leaves (``s``) with the error of its own gains (:func:`base_variance`).
+Once chosen, the pixel model shrinks each pixel's deviation ``d`` from the best structured model to its
+posterior mean under a normal prior of the sensor's pixel FPN, ``w d`` with ``w = s^2 / (s^2 + sigma_k^2)``
+(empirical Bayes; ``s^2`` by the Paule-Mandel equation ``sum d^2 / (s^2 + sigma_k^2) = N``), so that a
+pixel whose k is uncertain does not carry its estimation error into the correction (docs/method.md
+section 11). The written ``sigma_k`` is the written k's: the posterior's for the pixel model, the pixel
+FPN a structured model leaves (``s``) with the error of its own gains (:func:`base_variance`).
 
-Given two more fits on disjoint halves of the frames (:class:`Halves`), both
-are measured instead (:func:`calibrate`): the halves' errors are nearly
-independent, so ``s^2`` is the covariance of their deviations (noise does not
-enter it), and the full fit's error variance in each decile of ``sigma_k``
-(fewer parts on a plane short of 10 000 pixels: :data:`PART_PIXELS`) is
-``-mean((k_a - k)(k_b - k))`` (a Hausman-type difference: exact when k is the
-halves' average, and needing no truth); ``sigma_k`` is scaled by the measured
-factor. An error the halves share (interpolating a sharp scene) enters neither the Hausman
-difference nor the noise, but the covariance; the pixel FPN does not know the scene, so ``s^2``
-is pooled from the deciles that agree with the most precise (:func:`_prior`), and what the
-deviations' variance holds beyond ``s^2`` and the Hausman difference is counted as error.
-Where the full fit strays from the halves' mean by more than their spread allows
-(:func:`departure`), that error is added to ``sigma_k`` and those pixels are left out of the
-deciles' measurement. The measured calibration is in docs/limits.md ("Confidence").
+Given two more fits on disjoint halves of the frames (:class:`Halves`), both are measured instead
+(:func:`calibrate`): the halves' errors are nearly independent, so ``s^2`` is the covariance of their
+deviations (noise does not enter it), and the full fit's error variance in each decile of ``sigma_k``
+(fewer parts on a plane short of 10 000 pixels: :data:`PART_PIXELS`) is ``-mean((k_a - k)(k_b - k))`` (a
+Hausman-type difference: exact when k is the halves' average, and needing no truth); ``sigma_k`` is
+scaled by the measured factor. An error the halves share (interpolating a sharp scene) enters neither
+the Hausman difference nor the noise, but the covariance; the pixel FPN does not know the scene, so
+``s^2`` is pooled from the deciles that agree with the most precise (:func:`_prior`), and what the
+deviations' variance holds beyond ``s^2`` and the Hausman difference is counted as error. Where the full
+fit strays from the halves' mean by more than their spread allows (:func:`departure`), that error is
+added to ``sigma_k`` and those pixels are left out of the deciles' measurement. The measured calibration
+is in docs/limits.md ("Confidence").
 """
 
 from __future__ import annotations
@@ -195,7 +189,7 @@ def select_model(k: np.ndarray, confidence: np.ndarray, *, force: str | None = N
     k = np.asarray(k, np.float32)
     confidence = np.asarray(confidence, np.float32)
     est = confidence > 0
-    sigma = np.maximum(sigma_from_confidence(confidence), 1e-6).astype(np.float32)
+    sigma = _sigma(confidence)
     if measured is not None:
         fit, strayed, calibration = measured.fit, measured.strayed, measured.calibration
     elif halves is not None:
@@ -262,12 +256,14 @@ def base_variance(model: str, halves: Halves | None, est: np.ndarray) -> float:
     times the share of the plane the halves see. 0 without column gains (a row parity's, fitted on half
     the plane, errs far less than two halves' shakes differ in showing it), halves or the pixels their
     calibration asks (:data:`MIN_PARTS` parts)."""
-    both = est if halves is None else est & (halves.confidence_a > 0) & (halves.confidence_b > 0)
-    if halves is None or "column" not in model or both.sum() < MIN_PARTS * PART_PIXELS:
+    if halves is None or "column" not in model:
+        return 0.0
+    both = est & (halves.confidence_a > 0) & (halves.confidence_b > 0)
+    if both.sum() < MIN_PARTS * PART_PIXELS:
         return 0.0
     maps = []
     for k_half, confidence in ((halves.k_a, halves.confidence_a), (halves.k_b, halves.confidence_b)):
-        sigma = np.maximum(sigma_from_confidence(np.where(both, confidence, 1)), 1e-6).astype(np.float32)
+        sigma = _sigma(np.where(both, confidence, 1))
         gains = _Fits.of(np.asarray(k_half, np.float32), sigma, both, gate=False).full("column")[both]
         maps.append(gains / gains.mean(dtype=np.float64))
     return float(np.mean((maps[0] - maps[1]) ** 2, dtype=np.float64)) / 4 * float(both.sum() / est.sum())
@@ -287,9 +283,13 @@ class Measured:
 def measure(k: np.ndarray, confidence: np.ndarray, halves: Halves) -> Measured:
     """What :func:`select_model` measures of a plane with ``halves``, to pool its calibration with
     other planes' (:func:`pooled_priors`) before the model is chosen with it (``measured=``)."""
-    k, confidence = np.asarray(k, np.float32), np.asarray(confidence, np.float32)
-    return Measured(*_measured(k, np.maximum(sigma_from_confidence(confidence), 1e-6).astype(np.float32),
-                               confidence > 0, halves))
+    confidence = np.asarray(confidence, np.float32)
+    return Measured(*_measured(np.asarray(k, np.float32), _sigma(confidence), confidence > 0, halves))
+
+
+def _sigma(confidence: np.ndarray) -> np.ndarray:
+    """``sigma_k`` of ``confidence``, float32, at least 1e-6 (a weight ``1 / sigma_k^2`` stays finite)."""
+    return np.maximum(sigma_from_confidence(confidence), 1e-6).astype(np.float32)
 
 
 def _measured(k: np.ndarray, sigma: np.ndarray, est: np.ndarray, halves: Halves,
