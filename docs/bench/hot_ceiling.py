@@ -1,0 +1,148 @@
+"""How far the hot photosites the search misses are its scene prediction's fault, and how far a
+better prediction of the scene from the burst could go.
+
+    python docs/bench/hot_ceiling.py                 # every row (about 40 minutes)
+    python docs/bench/hot_ceiling.py raw12 dead-leaves 0.75
+
+Per sensor, scene and exposure (8 frames, two 240x320 bursts with 0.5 % defects, true motion):
+the share of the hot photosites that :func:`solve.defects.detect` flags, binned by
+``sim.truth.hot_offset_z`` (how plainly the offset shows with the scene known), when the two
+predictions of the scene it tests each photosite against (:mod:`solve.predict`) are
+
+* ``shipped``: as they are, from the readings;
+* ``noise-free``: the same two predictions made from the noise-free frames (their error is then the
+  aliasing's and the interpolation's alone);
+* ``latent``: a latent scene at 3x the plane's pitch (the scene model of :mod:`solve.scenemodel`,
+  each photosite's box the plane's pitch wide, or half of it on a CFA colour's plane)
+  fitted to the noise-free readings of the *other* photosites (16 folds, each a 4x4-periodic
+  sixteenth left out in every frame) and rendered at the left-out ones: the best prediction
+  tried that the plane's other readings give;
+* ``latent, noisy``: the same fitted to the readings (noise, FPN, defects), flagged with the
+  shipped search's flags added;
+* ``truth``: the scene itself.
+
+and, for each, the healthy photosites flagged on the same two bursts without defects.
+"""
+import sys
+from contextlib import contextmanager
+
+import numpy as np
+
+sys.path.insert(0, str(__import__("pathlib").Path(__file__).resolve().parents[2]))
+from gainfpn_cli.geometry.planes import plane_views
+from gainfpn_cli.geometry.warps import GlobalWarp
+from gainfpn_cli.sim.sensor import PRESETS
+from gainfpn_cli.sim.simulate import simulate_burst
+from gainfpn_cli.sim.truth import hot_offset_z
+from gainfpn_cli.solve import defects as D
+from gainfpn_cli.solve import predict as P
+from gainfpn_cli.solve.scene import SceneOptions, prepare
+from gainfpn_cli.solve.scenemodel import fit_tile
+from gainfpn_cli.solve.tiling import power_of_two_scale
+
+EDGES = np.array([0, 4, 6, 10, 20, 40, np.inf])
+#: Left-out pattern of the latent scene's folds (photosites (i % FOLD, j % FOLD) together).
+FOLD = 4
+
+
+def everywhere(t, frame):
+    return np.ones(frame.shape, bool)
+
+
+def left_out_rendering(frames, warp, gain_prior, aperture):
+    """Each reading's ``B W_t S`` of a latent scene fitted without its photosite (FOLD^2 fits)."""
+    frames = np.ascontiguousarray(frames, np.float32)
+    _, h, w = frames.shape
+    options = SceneOptions(scale=3, aperture=aperture, tile=max(h, w), halo=0, refine_frames=False, gain_prior=gain_prior)
+    unit = power_of_two_scale(frames)
+    out = np.zeros(frames.shape, np.float32)
+    rows, cols = np.mgrid[:h, :w]
+    fold = (rows % FOLD) * FOLD + cols % FOLD
+    for k in range(FOLD * FOLD):
+        out_k = np.broadcast_to(fold == k, frames.shape)
+        (tile,) = prepare(dict(frames=frames, motion=warp, excluded=out_k), options)
+        fit = fit_tile(tile)
+        out[out_k] = (np.asarray(fit.predicted).reshape(frames.shape) * unit)[out_k]
+    return out
+
+
+@contextmanager
+def predictions(source):
+    """The search's two predictions replaced by ``source(frames, warp)`` (where the shipped ones know
+    the scene at all: the same readings are tested)."""
+    shipped_scene, shipped_nearest = D.scene_along, D.nearest_along
+
+    def scene_along(frames, good, warp, threads=1):
+        x, valid, from_frames = shipped_scene(frames, good, warp, threads=threads)
+        return source(frames, warp), valid, from_frames
+
+    def nearest_along(frames, good, warp, threads=1):
+        _, valid = shipped_nearest(frames, good, warp, threads=threads)
+        return source(frames, warp), valid
+
+    D.scene_along, D.nearest_along = scene_along, nearest_along
+    try:
+        yield
+    finally:
+        D.scene_along, D.nearest_along = shipped_scene, shipped_nearest
+
+
+def codes_of(b, sensor, mode):
+    frames = (b.frames.astype(np.float32) - sensor.black_level)[..., None]
+    warp = GlobalWarp(b.homographies)
+    codes = np.zeros(frames.shape[1:3], np.uint8)
+    aperture = 1.0 if sensor.cfa is None else 0.5
+    for _, pick, S in plane_views(sensor.cfa, ("Y",)):
+        ideal = np.ascontiguousarray(pick(b.ideal[..., None]), np.float32)
+        cache = {}
+
+        def source(plane, warp):  # (both predictions ask: fitted once)
+            if "x" not in cache:
+                if mode == "noise-free":
+                    cache["x"] = (P.scene_along(ideal, everywhere, warp)[0], P.nearest_along(ideal, everywhere, warp)[0])
+                elif mode == "latent":
+                    cache["x"] = (left_out_rendering(ideal, warp, 1e-3, aperture),) * 2
+                elif mode == "latent, noisy":
+                    cache["x"] = (left_out_rendering(plane, warp, 0.05, aperture),) * 2
+                else:  # truth
+                    cache["x"] = (ideal, ideal)
+            cache["calls"] = cache.get("calls", -1) + 1
+            return cache["x"][cache["calls"] % 2]
+
+        plane, conjugate = pick(frames), warp.conjugate(S)
+        if mode == "shipped":
+            found = D.detect(plane, conjugate, saturation=b.saturation)
+        else:
+            with predictions(source):
+                found = D.detect(plane, conjugate, saturation=b.saturation)
+            if mode == "latent, noisy":
+                found = np.maximum(found, D.detect(plane, conjugate, saturation=b.saturation))
+        pick(codes[..., None])[...] = found
+    return codes
+
+
+def row(preset, scene, exposure, seeds=(0, 1)):
+    sensor = PRESETS[preset]
+    for mode in ("shipped", "noise-free", "latent", "latent, noisy", "truth"):
+        total, found, flagged = np.zeros(6), np.zeros(6), 0
+        for seed in seeds:
+            kw = dict(shape=(240, 320), n_frames=8, sensor=sensor, scene=scene, exposure=exposure, seed=seed)
+            b = simulate_burst(defects=0.005, **kw)
+            hot = b.defects == D.HOT
+            bins = np.clip(np.digitize(hot_offset_z(b, sensor, hot), EDGES) - 1, 0, len(EDGES) - 2)
+            total += np.bincount(bins, minlength=6)
+            found += np.bincount(bins, weights=(codes_of(b, sensor, mode)[hot] > 0).astype(float), minlength=6)
+            flagged += int(np.count_nonzero(codes_of(simulate_burst(**kw), sensor, mode)))
+        rates = " ".join(f"{f / t * 100:.0f}%({int(t)})" if t else "-" for f, t in zip(found, total))
+        print(f"{preset:6s} {scene:12s} {exposure:5} {mode:13s}: {rates}; healthy flagged {flagged} of "
+              f"{len(seeds) * 240 * 320}", flush=True)
+    print(f"bins of hot_offset_z: {EDGES}", flush=True)
+
+
+if __name__ == "__main__" and len(sys.argv) == 4:
+    row(sys.argv[1], sys.argv[2], float(sys.argv[3]))
+elif __name__ == "__main__":
+    for preset in ("raw12", "paper"):
+        for scene in ("dead-leaves", "procedural"):
+            for exposure in (0.75, 0.075):
+                row(preset, scene, exposure)
