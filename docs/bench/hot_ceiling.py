@@ -67,24 +67,35 @@ def left_out_rendering(frames, warp, gain_prior, aperture):
 
 
 @contextmanager
-def predictions(source):
-    """The search's two predictions replaced by ``source(frames, warp)`` (where the shipped ones know
-    the scene at all: the same readings are tested)."""
+def predictions(median, nearest):
+    """The search's two predictions of the scene replaced by ``median`` and ``nearest`` ``(F, H, W)``
+    (where the shipped ones know the scene at all: the same readings are tested)."""
     shipped_scene, shipped_nearest = D.scene_along, D.nearest_along
 
     def scene_along(frames, good, warp, threads=1):
-        x, valid, from_frames = shipped_scene(frames, good, warp, threads=threads)
-        return source(frames, warp), valid, from_frames
+        _, valid, from_frames = shipped_scene(frames, good, warp, threads=threads)
+        return median, valid, from_frames
 
     def nearest_along(frames, good, warp, threads=1):
         _, valid = shipped_nearest(frames, good, warp, threads=threads)
-        return source(frames, warp), valid
+        return nearest, valid
 
     D.scene_along, D.nearest_along = scene_along, nearest_along
     try:
         yield
     finally:
         D.scene_along, D.nearest_along = shipped_scene, shipped_nearest
+
+
+def replaced(mode, ideal, plane, warp, aperture):
+    """The two predictions ``mode`` puts in the shipped ones' place (see the module)."""
+    if mode == "noise-free":
+        return P.scene_along(ideal, everywhere, warp)[0], P.nearest_along(ideal, everywhere, warp)[0]
+    if mode == "latent":
+        return (left_out_rendering(ideal, warp, 1e-3, aperture),) * 2
+    if mode == "latent, noisy":
+        return (left_out_rendering(plane, warp, 0.05, aperture),) * 2
+    return ideal, ideal  # truth
 
 
 def codes_of(b, sensor, mode):
@@ -94,26 +105,11 @@ def codes_of(b, sensor, mode):
     aperture = 1.0 if sensor.cfa is None else 0.5
     for _, pick, S in plane_views(sensor.cfa, ("Y",)):
         ideal = np.ascontiguousarray(pick(b.ideal[..., None]), np.float32)
-        cache = {}
-
-        def source(plane, warp):  # (both predictions ask: fitted once)
-            if "x" not in cache:
-                if mode == "noise-free":
-                    cache["x"] = (P.scene_along(ideal, everywhere, warp)[0], P.nearest_along(ideal, everywhere, warp)[0])
-                elif mode == "latent":
-                    cache["x"] = (left_out_rendering(ideal, warp, 1e-3, aperture),) * 2
-                elif mode == "latent, noisy":
-                    cache["x"] = (left_out_rendering(plane, warp, 0.05, aperture),) * 2
-                else:  # truth
-                    cache["x"] = (ideal, ideal)
-            cache["calls"] = cache.get("calls", -1) + 1
-            return cache["x"][cache["calls"] % 2]
-
         plane, conjugate = pick(frames), warp.conjugate(S)
         if mode == "shipped":
             found = D.detect(plane, conjugate, saturation=b.saturation)
         else:
-            with predictions(source):
+            with predictions(*replaced(mode, ideal, plane, conjugate, aperture)):
                 found = D.detect(plane, conjugate, saturation=b.saturation)
             if mode == "latent, noisy":
                 found = np.maximum(found, D.detect(plane, conjugate, saturation=b.saturation))
