@@ -40,7 +40,7 @@ Kinds, in the order they are tested (:data:`KINDS` gives the codes of ``gain_map
   dark-current offset seen as a gain: where the scene along its trajectory is flat, an offset
   and a gain cannot be told apart from the burst, and one smaller than the plane's gain spread
   goes unseen; a dark frame finds those, ``input.dark``); or an offset far above the plane's in
-  a fit of gain and offset to its readings (:func:`_offset_scores`, ``> Z_OFFSET``, and ``>
+  a fit of gain and offset to its readings (:func:`offset_scores`, ``> Z_OFFSET``, and ``>
   Z_SHARP_OFFSET`` against the sharper prediction): a trajectory across an edge tells an offset
   from a gain where the ratio's scatter over the frames hides it from the response; or readings far
   above the scene in every frame too dark for a response, at least :data:`MIN_FRAMES` of them
@@ -59,6 +59,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ..metrics import MAD_TO_SIGMA
+from .along import MIN_FIT_FRAMES, local_median, offset_scores, responses, robust_spread
 from .noise import NoiseModel
 from .noise import fit as fit_noise
 from .noise import level_and_scatter
@@ -98,7 +99,7 @@ MIN_FRAMES = 4
 #: within 7 px of the frame's edge; with 2, 18 flagged in all (0.71e-4), and the table of
 #: docs/bench/defects.py lost 0-3 percentage points of the hot photosites found.
 BORDER_Z = 2.0
-#: Score of an offset fitted with the gain (:func:`_offset_scores`) past which a photosite is hot.
+#: Score of an offset fitted with the gain (:func:`offset_scores`) past which a photosite is hot.
 #: Measured (docs/bench/defects.py, 240x320, 0.5 % defects and the same bursts without): at 8 and
 #: 7 alike, at most 0.07e-4 of the healthy photosites flagged over the table's bursts of 8
 #: frames, 7 finding 1-4 % more of the hot ones; 8 keeps a margin for scenes not tuned on.
@@ -109,20 +110,6 @@ Z_OFFSET = 8.0
 #: 9 / 10 flagged 45 / 32 / 24 (26 with the median's tests alone), and found 65 / 60 / 57 % of the hot
 #: photosites of the 8-frame raw12 dead-leaves bursts at 75 % (42 % without it).
 Z_SHARP_OFFSET = 9.0
-#: Fewest frames, predicted from the other frames, that the offset is fitted on. At 5, ten
-#: defect-free 144x176 raw12 dead-leaves bursts of 5 frames (seeds 20-29, true motion) had 9 more
-#: healthy photosites flagged (56 against 47 of 253 440), the table's 240x320 ones 0-1 more.
-MIN_FIT_FRAMES = 6
-#: Scale of the Cauchy weights of the offset fit, in standard deviations of a reading: the
-#: frames where the prediction misses (an edge, a border) stop pulling the fit (95 % efficiency
-#: at Gaussian errors). The weights are those of the robust start (the plane's gain, the median
-#: offset): reweighting twice more changed the table's detections by at most 0.6 % of the hot
-#: photosites.
-CAUCHY_SCALE = 2.385
-#: E[c^2 u^2 / (1 + u^2)] for a unit Gaussian residual (u = r / c, c = CAUCHY_SCALE): the fit's own
-#: Cauchy-weighted scatter is divided by it, so that Gaussian residuals of the model's variance
-#: give 1 (Monte Carlo, 10^7 draws).
-CAUCHY_CONSISTENCY = 0.697
 #: Scene levels below this fraction of the plane's bright level (99th percentile) do not enter
 #: a response: near black, a ratio is all noise.
 MIN_LEVEL = 0.02
@@ -186,13 +173,13 @@ def survey(frames: np.ndarray, warp, *, saturation: float | None = None,
     always = valid.all(axis=0)  # every reading usable as far as the frames and the motion go
     from_frames &= valid  # (in place: no third stack) the valid readings the other frames predict
     del valid  # frame-stack-sized, as usable and from_frames are
-    response, scatter, n, lowest, highest, level = _responses(frames, x, usable, threads)
+    response, scatter, n, lowest, highest, level = responses(frames, x, usable, threads)
     tested = n >= MIN_FRAMES
     if not tested.any():
         return Survey(codes, None)
     # the plane's spread, or its neighbourhood's where larger: beside an edge or a border the
     # prediction misses, consistently over the frames, for every photosite around
-    typical, plane_spread, spread = _robust_spread(response, tested)
+    typical, plane_spread, spread = robust_spread(response, tested)
     z = _scores(response, typical, spread, scatter, n, tested)
     dead = tested & (response < LOW_RESPONSE * typical) & (highest < DEAD_CEILING * typical) & (z < -Z_DEFECT)
     silent = dead & (response < DEAD_RESPONSE * typical)  # dead whatever its readings' spread
@@ -209,7 +196,7 @@ def survey(frames: np.ndarray, warp, *, saturation: float | None = None,
     z = _scores(response, typical, spread, np.maximum(scatter, rounding), n, tested)
     hot = (z > np.where(usable.sum(axis=0) >= MIN_FRAMES, Z_DEFECT, BORDER_Z * Z_DEFECT)) & (lowest > typical)
     if n_frames >= MIN_FIT_FRAMES:
-        hot |= _offset_scores(frames, x, usable, typical, plane_spread, scatter, noise, threads) > Z_OFFSET
+        hot |= offset_scores(frames, x, usable, typical, plane_spread, scatter, noise, threads) > Z_OFFSET
     # (the stacks and planes no longer needed: the sharper prediction's in their place)
     del x, usable, from_frames, response, scatter, lowest, highest, level, z, rounding, spread
     sharp = _sharp_tests(frames, good, warp, floor, noise, typical, plane_spread, stuck, threads)
@@ -235,12 +222,12 @@ def survey(frames: np.ndarray, warp, *, saturation: float | None = None,
 
 def _scores(response, typical: float, spread: np.ndarray, scatter, n, tested) -> np.ndarray:
     """Each photosite's score ``z``: its response's distance from the ``typical`` one over the
-    ``spread`` (:func:`_robust_spread`'s, per photosite) and its own ``scatter`` over its ``n``
+    ``spread`` (:func:`robust_spread`'s, per photosite) and its own ``scatter`` over its ``n``
     frames, in quadrature."""
     # the median of n ratios scatters pi/2 times as much (in variance) as their mean; a scatter
     # from a few frames can be small by chance: not below its neighbourhood's (prediction errors
     # near an edge are shared by the photosites along it)
-    local = _local_median(np.where(tested, scatter, 0.0))
+    local = local_median(np.where(tested, scatter, 0.0))
     own = np.pi / 2 * np.maximum(scatter, local) ** 2 / np.maximum(n, 1)
     return np.where(tested, (response - typical) / np.sqrt(spread**2 + own + 1e-30), 0.0)
 
@@ -259,7 +246,7 @@ def _sharp_tests(frames, good, warp, floor: float, noise, plane_typical: float, 
     """The tests that the median prediction's error beside a sharp edge of an aliased plane spoils,
     against the sharper prediction (:func:`predict.nearest_along`, less than half its error):
     it fakes a dead photosite's response, and a dim one's readings far from the scene
-    (:func:`_dark_scores`), where this one does not; and it hides offsets (:func:`_offset_scores`)
+    (:func:`_dark_scores`), where this one does not; and it hides offsets (:func:`offset_scores`)
     that this one shows. Over the readings above ``floor``, as the median's; whether the scene is
     above it along the trajectory, at the photosites ``asked`` (those read as stuck)."""
     x, valid = nearest_along(frames, good, warp, threads=threads)
@@ -270,95 +257,14 @@ def _sharp_tests(frames, good, warp, floor: float, noise, plane_typical: float, 
     lit = ~seen
     lit[asked] |= nan_median(np.where(valid[:, asked], x[:, asked], np.float32(np.nan))) > floor
     del valid
-    response, scatter, n, *_ = _responses(frames, x, usable, threads)
+    response, scatter, n, *_ = responses(frames, x, usable, threads)
     tested = n >= MIN_FRAMES
     if not tested.any():
         return _Sharp(np.zeros(tested.shape), dim, ~seen, lit)  # (no response: no offset either)
-    typical, spread, _ = _robust_spread(response, tested)
+    typical, spread, _ = robust_spread(response, tested)
     fit = frames.shape[0] >= MIN_FIT_FRAMES
-    offsets = _offset_scores(frames, x, usable, typical, spread, scatter, noise, threads) if fit else None
+    offsets = offset_scores(frames, x, usable, typical, spread, scatter, noise, threads) if fit else None
     return _Sharp(offsets, dim, ~seen | (tested & (response < LOW_RESPONSE * typical)), lit)
-
-
-def _responses(y: np.ndarray, x: np.ndarray, usable: np.ndarray, threads: int = 1) -> tuple[np.ndarray, ...]:
-    """Per photosite: the median over frames of ``y / x``, its robust scatter, the count, the
-    lowest, the highest, and the mean ``x`` (a strip at a time on ``threads`` threads:
-    :func:`stacks.each_strip`)."""
-    out = [np.zeros(y.shape[1:], np.float32) for _ in range(5)]
-
-    def work(rows):
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ratio = np.where(usable[:, rows], y[:, rows] / x[:, rows], np.float32(np.nan))
-        response = nan_median(ratio)
-        scatter = MAD_TO_SIGMA * nan_median(np.abs(ratio - response[None]))
-        # np.nanmin's, np.nanmax's and np.nanmean's results (NaN where no frame is usable), without
-        # their warnings, whose filters are not the thread's own as NumPy's error state is
-        level = np.where(usable[:, rows], x[:, rows], np.float32(0)).sum(axis=0)
-        with np.errstate(invalid="ignore"):
-            np.true_divide(level, usable[:, rows].sum(axis=0, dtype=np.intp), out=level, casting="unsafe")
-        parts = (response, scatter, np.fmin.reduce(ratio, axis=0), np.fmax.reduce(ratio, axis=0), level)
-        for whole, part in zip(out, parts):
-            whole[rows] = np.nan_to_num(part)
-
-    each_strip(work, y.shape, threads=threads)
-    response, scatter, lowest, highest, level = out
-    return response, scatter, usable.sum(axis=0), lowest, highest, level
-
-
-def _offset_scores(y: np.ndarray, x: np.ndarray, fitted: np.ndarray, typical: float, spread: float,
-                   scatter: np.ndarray, noise, threads: int = 1) -> np.ndarray:
-    """Per photosite, the offset ``b`` of ``y_t = a x_t + b`` fitted to its readings in the frames
-    ``fitted``, over its standard error, in units of the plane's (and where larger its 5x5
-    neighbourhood's) robust spread of that score; 0 where fewer than :data:`MIN_FIT_FRAMES` are
-    fitted. The gain ``a`` has the plane's as prior (``typical``, ``spread``): along a flat
-    trajectory the offset is then the response's excess, across an edge the two are told apart.
-    A reading's variance is the noise at the photosite's mean level or, where larger, the
-    prediction's error around it (the 5x5 median of the ratios' ``scatter`` over the frames times
-    the level); the frames are Cauchy-weighted by their residuals about a robust start (the
-    plane's gain, the median offset), and the error is scaled up by the fit's own scatter where
-    that is larger. A quarter strip at a time on ``threads`` threads (:func:`stacks.each_strip`)."""
-    count = fitted.sum(axis=0)
-    level = np.zeros(count.shape, np.float32)
-
-    def mean_level(rows):
-        level[rows] = np.where(fitted[:, rows], x[:, rows], 0).sum(axis=0) / np.maximum(count[rows], 1)
-
-    each_strip(mean_level, y.shape, threads=threads)
-    var = np.maximum(noise(level), _local_median(scatter * level) ** 2).astype(np.float32)
-    root_weight = 1.0 / np.sqrt(np.maximum(var, 1e-12))  # noise-free data: no zero division
-    prior = 1.0 / max(spread, 1e-6) ** 2
-    score = np.zeros(count.shape)
-    tested = count >= MIN_FIT_FRAMES
-
-    def fit(rows):  # a dozen temporaries of a quarter strip's stack
-        # (fewer frames: no fit, whose 2x2 system from one frame would be cancellation's noise)
-        use = fitted[:, rows] & tested[rows]
-        ys, xs = np.where(use, y[:, rows], np.float32(0)), np.where(use, x[:, rows], np.float32(0))
-        root = use * (root_weight[rows] / CAUCHY_SCALE)  # z / c of a residual: residual x root
-        start = ys - typical * xs
-        start -= np.nan_to_num(nan_median(np.where(use, start, np.nan)))
-        w = root * root / (1 + (start * root) ** 2) * CAUCHY_SCALE**2
-        # about the weighted means: the sums' differences cancel to noise where the weights are
-        # large (noise-free readings) and x barely moves along the trajectory
-        s1 = np.maximum(w.sum(0, np.float64), 1e-300)
-        mx, my = (w * xs).sum(0, np.float64) / s1, (w * ys).sum(0, np.float64) / s1
-        dx = xs - mx.astype(np.float32)
-        sxx = (w * dx * dx).sum(0, np.float64) + prior  # the gain's information, its prior's included
-        a = ((w * dx * ys).sum(0, np.float64) + prior * typical) / sxx
-        b = (my - a * mx).astype(np.float32)
-        u = (ys - a.astype(np.float32) * xs - b) * root
-        own = CAUCHY_SCALE**2 * (u * u / (1 + u * u)).sum(0, np.float64) / np.maximum(count[rows] - 2, 1)
-        variance = 1.0 / s1 + mx * mx / sxx  # b's, in units of the readings' weights
-        score[rows] = b / np.sqrt(variance * np.maximum(own / CAUCHY_CONSISTENCY, 1.0))
-
-    each_strip(fit, y.shape, parts=4, threads=threads)
-    if not tested.any():
-        return np.zeros(count.shape)
-    centre, _, scale = _robust_spread(score, tested)
-    score -= centre
-    score /= np.maximum(scale, 1e-12, out=scale)
-    score[~tested] = 0.0
-    return score
 
 
 def _dark_scores(y: np.ndarray, x: np.ndarray, valid: np.ndarray, usable: np.ndarray, typical: float,
@@ -387,7 +293,7 @@ def _dark_scores(y: np.ndarray, x: np.ndarray, valid: np.ndarray, usable: np.nda
         overall[rows] = np.where(seen >= MIN_FRAMES, np.abs(total) / np.maximum(seen, 1), 0)
 
     each_strip(mean_excess, y.shape, threads=threads)
-    around = (MAD_TO_SIGMA * _local_median(overall)).astype(np.float32)
+    around = (MAD_TO_SIGMA * local_median(overall)).astype(np.float32)
     overall = None  # let go (a plane; the pass's closure holds its cell)
     score = np.zeros(y.shape[1:], np.float32)
 
@@ -420,27 +326,3 @@ def _dark_scores(y: np.ndarray, x: np.ndarray, valid: np.ndarray, usable: np.nda
 
     each_strip(dim_score, y.shape, threads=threads)
     return score
-
-
-def _robust_spread(values: np.ndarray, tested: np.ndarray) -> tuple[float, float, np.ndarray]:
-    """The median of ``values`` over the ``tested`` photosites, their robust spread (MAD), and
-    per photosite that spread or, where larger, the robust spread of the tested values about the
-    median over its 5x5 neighbourhood."""
-    picked = values[tested]  # (in place from here: each temporary is a plane's, 96 MB at 12 MP in float64)
-    centre = float(np.median(picked, overwrite_input=True))
-    np.abs(np.subtract(picked, centre, out=picked), out=picked)
-    spread = MAD_TO_SIGMA * float(np.median(picked, overwrite_input=True))
-    del picked
-    deviation = np.abs(np.subtract(values, centre, dtype=values.dtype), dtype=values.dtype)
-    deviation[~tested] = 0.0
-    around = _local_median(deviation)
-    del deviation
-    around *= MAD_TO_SIGMA
-    return centre, spread, np.maximum(spread, around, out=around)
-
-
-def _local_median(values: np.ndarray) -> np.ndarray:
-    """Median over each pixel's 5x5 neighbourhood (OpenCV's median filter takes float32 at 5)."""
-    import cv2
-
-    return cv2.medianBlur(np.ascontiguousarray(values, np.float32), 5).astype(np.float64)
