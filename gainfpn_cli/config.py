@@ -129,6 +129,10 @@ class InputConfig:
         True, boolean, "find defective photosites (hot, dead, stuck) from the burst, and hot ones from the dark "
         "frame; leave them out of the solve, write k = 1 and confidence 0 there"
     )
+    defects_latent: bool = _key(
+        True, boolean, "on a RAW CFA burst of 6+ frames, test the likeliest hot photosites again against a latent "
+        "scene fitted without them: more of them found on sharp scenes, at 4-5x the defect search's time"
+    )
     exposure: str = _key(
         "per-frame",
         choice("per-frame", "fixed"),

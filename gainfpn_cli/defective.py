@@ -39,11 +39,12 @@ class Found:
 
 def find(frames: np.ndarray, cfa: str | None, channels: tuple[str, ...], *, excluded: np.ndarray | None,
          exposures: np.ndarray, warp, saturation: float | None, dark_hot: np.ndarray | None = None,
-         threads: int = 1) -> Found:
+         latent: bool = True, threads: int = 1) -> Found:
     """The defect map of a burst ``frames`` ``(F, H, W, C)`` (DN after black, reference first) and its
     planes' noise, ``warp`` its motion in frame pixels, ``excluded`` ``(F, H, W)`` the readings of
     moving objects, ``dark_hot`` ``(H, W, C)`` the hot photosites a dark frame shows (:func:`hot_in_dark`);
-    each plane searched on ``threads`` threads (the same result on any number)."""
+    ``latent``: a CFA's planes' likeliest hot photosites tested again (:mod:`solve.leftout`); each plane
+    searched on ``threads`` threads (the same result on any number)."""
     if saturation is not None:  # a frame at a time: a mask of the stack's channels is 192 MB at 12 MP x 16
         clipped = np.empty(frames.shape[:-1], bool)
         for t, frame in enumerate(frames):
@@ -58,7 +59,7 @@ def find(frames: np.ndarray, cfa: str | None, channels: tuple[str, ...], *, excl
         plane = pick(frames)
         out = pick(codes[None])[0]
         found = D.survey(plane, warp.conjugate(S), excluded=None if mask is None else pick(mask), exposures=exposures,
-                         threads=threads)
+                         aperture=0.5 if cfa else 1.0, latent=latent, threads=threads)
         out[...], noise[name] = found.codes, found.noise
         if dark_hot is not None:
             out[(out == D.HEALTHY) & pick(dark_hot[None])[0]] = D.HOT

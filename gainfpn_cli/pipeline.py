@@ -155,6 +155,7 @@ def _estimate(burst: LoadedBurst, cfg: Config, solver: solving.Solver, progress:
         t0 = time.perf_counter()
         found = defective.find(frames, burst.cfa, burst.channels, excluded=excluded, exposures=exposures,
                                warp=in_frame, saturation=burst.saturation, dark_hot=burst.dark_hot,
+                               latent=cfg.input.defects and cfg.input.defects_latent,
                                threads=cfg.solver.workers)  # the workers' CPUs, idle until the solve
         codes = found.codes if cfg.input.defects else None
         if cfg.solver.min_snr > 0:

@@ -121,6 +121,7 @@ STRATEGIES = {
     "input.saturation": st.none() | st.floats(0, 1e9, allow_nan=False),
     "input.dark": st.none() | st.text(min_size=1, max_size=20),
     "input.defects": st.booleans(),
+    "input.defects_latent": st.booleans(),
     "input.exposure": st.sampled_from(["per-frame", "fixed"]),
     "motion.model": st.sampled_from(["auto", "translation", "affine", "homography", "rolling", "mesh"]),
     "motion.refine_rounds": st.integers(0, 5),

@@ -159,7 +159,7 @@ def test_a_bright_fine_texture_is_not_too_dark():
     frames = burst.frames.astype(np.float32) - sensor.black_level
     saturation = sensor.white_level - sensor.black_level
     red = GlobalWarp(burst.homographies[:-1]).conjugate(plane_to_mosaic((0, 0)))  # the red plane's motion
-    noise = D.survey(frames[:-1, 0::2, 0::2], red, saturation=saturation).noise
+    noise = D.survey(frames[:-1, 0::2, 0::2], red, saturation=saturation, aperture=0.5).noise
     assert noise.level_at_snr(5.0) > 4 * darkness.MAX_FLOOR * saturation, noise  # polluted (the sensor's: 6 DN)
     result = api.estimate(frames, cfa=sensor.cfa, saturation=saturation)
     for plane in result.report.planes.values():

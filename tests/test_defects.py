@@ -26,13 +26,14 @@ RAW12 = PRESETS["raw12"]
 MONO = dataclasses.replace(RAW12, cfa=None)
 
 
-def _codes(burst, sensor) -> np.ndarray:
+def _codes(burst, sensor, latent: bool = True) -> np.ndarray:
     """detect() on every plane of a simulated burst, with its true motion."""
     frames = (burst.frames.astype(np.float32) - sensor.black_level)[..., None]
     codes = np.zeros(frames.shape[1:3], np.uint8)
     for _, pick, S in plane_views(sensor.cfa, ("Y",)):
         pick(codes[..., None])[...] = D.detect(pick(frames), GlobalWarp(burst.homographies).conjugate(S),
-                                               saturation=burst.saturation)
+                                               saturation=burst.saturation, aperture=0.5 if sensor.cfa else 1.0,
+                                               latent=latent)
     return codes
 
 
@@ -44,19 +45,21 @@ def test_dead_and_stuck_photosites_are_found_and_healthy_ones_left_alone(sensor,
     for code in (D.DEAD, D.STUCK):  # 58 of each: every one flagged (measured 100 % on the bench)
         assert (codes[burst.defects == code] > 0).all()
     # hot ones where they stand out from the plane's gain spread (the larger offsets) or the scene
-    # along their trajectory varies: 18-96 % of the simulated ones on the bench; here 59 / 85 / 85 %
-    # (38 / 72 / 79 % against the median prediction alone)
+    # along their trajectory varies: 18-99 % of the simulated ones on the bench; here 68 / 91 / 85 %
+    # (38 / 72 / 79 % against the median prediction alone, 59 / 85 / 85 % without the latent scene's
+    # test of the RGGB planes, solve.leftout)
     assert (codes[burst.defects == D.HOT] > 0).mean() > 0.5
     clean = _codes(simulate_burst(**kwargs), sensor)
-    assert np.count_nonzero(clean) <= 1e-4 * clean.size  # 7.7 photosites: 0-1 measured (Z_DEFECT)
+    assert np.count_nonzero(clean) <= 1e-4 * clean.size  # 7.7 photosites: 0-4 measured (Z_DEFECT)
 
 
-@pytest.mark.parametrize("preset, exposure, share", [("paper", 0.75, 0.65), ("raw12", 0.075, 0.93)])
+@pytest.mark.parametrize("preset, exposure, share", [("paper", 0.75, 0.65), ("raw12", 0.075, 0.98)])
 def test_hot_photosites_the_burst_shows_plainly_are_found(preset, exposure, share):
     # offsets the burst tells from a gain by 20 of their standard errors (with the scene known):
     # the detector before the fit of gain and offset along each trajectory found 38 % (8-bit) and
     # 65 % (RGGB, dark) of them on these bursts, with the fit 60 % and 81 %, with the fit against
-    # the nearest readings' prediction too (solve.predict) 69 % and 96 %
+    # the nearest readings' prediction too (solve.predict) 69 % and 96 %, with the RGGB planes' test
+    # against a latent scene fitted without the suspects (solve.leftout) 69 % and 99.5 %
     sensor = PRESETS[preset]
     kwargs = dict(shape=(240, 320), n_frames=8, sensor=sensor, scene="dead-leaves", exposure=exposure, seed=2)
     burst = simulate_burst(defects=0.005, **kwargs)
@@ -66,6 +69,23 @@ def test_hot_photosites_the_burst_shows_plainly_are_found(preset, exposure, shar
     assert (_codes(burst, sensor)[hot][plain] > 0).mean() >= share
     clean = _codes(simulate_burst(**kwargs), sensor)
     assert np.count_nonzero(clean) <= 1e-4 * clean.size
+
+
+def test_a_latent_scene_fitted_without_the_suspects_finds_hot_photosites_of_sharp_colour_planes():
+    # raw12 RGGB dead leaves, bright: the search's predictions miss the edges an offset crosses on
+    # these aliased planes; tested once more against the scene model fitted without the likeliest hot
+    # photosites (solve.leftout): of the 137 offsets shown by 20+ standard errors the search finds 82 %
+    # without that test, 92 % with it; 4 healthy photosites of the burst without defects flagged
+    kwargs = dict(shape=(240, 320), n_frames=8, sensor=RAW12, scene="dead-leaves", exposure=0.75, seed=2)
+    burst = simulate_burst(defects=0.005, **kwargs)
+    hot = burst.defects == D.HOT
+    plain = hot_offset_z(burst, RAW12, hot) > 20
+    assert plain.sum() >= 100  # 137: enough for a share
+    both = (_codes(burst, RAW12)[hot][plain] > 0).mean()
+    clean = np.count_nonzero(_codes(simulate_burst(**kwargs), RAW12))
+    search = (_codes(burst, RAW12, latent=False)[hot][plain] > 0).mean()  # input.defects_latent: false
+    assert search <= 0.85 and both >= 0.9, (search, both)
+    assert clean <= 1e-4 * burst.defects.size
 
 
 def test_the_scene_model_finds_the_plainly_shown_hot_photosites_the_search_misses(monkeypatch):

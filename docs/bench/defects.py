@@ -6,6 +6,7 @@
     python docs/bench/defects.py deadz  # dead and stuck ones found, by how plainly they differ from a healthy one
     python docs/bench/defects.py predict  # the error of the two predictions of the scene (solve.predict)
     python docs/bench/defects.py photos   # healthy photosites flagged on photographs (scikit-image's)
+    python docs/bench/defects.py clean    # ... on ten defect-free 144x176 bursts per row, 6 and 7 frames
     python docs/bench/defects.py model    # hot ones found by the scene model's offset test, by hotz's bins
     python docs/bench/defects.py model photos  # healthy photosites that test flags on photographs
     python docs/bench/defects.py model scores  # the healthy photosites' scores of that test
@@ -37,7 +38,8 @@ def codes_of(b, sensor):
     warp = GlobalWarp(b.homographies)
     codes = np.zeros(frames.shape[1:3], np.uint8)
     for name, pick, S in plane_views(sensor.cfa, ("Y",)):
-        pick(codes[..., None])[...] = D.detect(pick(frames), warp.conjugate(S), saturation=b.saturation)
+        pick(codes[..., None])[...] = D.detect(pick(frames), warp.conjugate(S), saturation=b.saturation,
+                                               aperture=0.5 if sensor.cfa else 1.0)
     return codes
 
 def run(scene="dead-leaves", preset="paper", n=8, exposure=0.75, frac=0.005, seeds=(0, 1), shape=(240, 320), **kw):
@@ -231,6 +233,22 @@ def photographs(scenes=PHOTOS, seeds=(40, 41)):
                   f"hot / dead / stuck {kinds[1:]}", flush=True)
 
 
+def clean(frames=(6, 7), seeds=range(20, 30)):
+    """Healthy photosites flagged on ten defect-free 144x176 bursts per sensor, scene and exposure
+    (true motion), at each frame count (docs/limits.md's table of them; about 3 minutes)."""
+    for preset in ("raw12", "paper"):
+        sensor = PRESETS[preset]
+        for exposure in (0.75, 0.075):
+            for scene in ("dead-leaves", "procedural"):
+                counts = []
+                for n in frames:
+                    bursts = (simulate_burst(shape=(144, 176), n_frames=n, sensor=sensor, scene=scene,
+                                             exposure=exposure, seed=seed) for seed in seeds)
+                    counts.append(sum(int(np.count_nonzero(codes_of(b, sensor))) for b in bursts))
+                print(f"{preset:6s} {scene:12s} {exposure:5}: flagged at {frames} frames {counts} of "
+                      f"{len(seeds) * 144 * 176}", flush=True)
+
+
 def threads(shape=(1500, 2000), n=8, rounds=2):
     """Seconds of the search (every plane, true motion, 0.2 % defects, frames of different exposures)
     on 1 and 2 threads, alternating, and whether the codes and noise models are the same."""
@@ -245,7 +263,7 @@ def threads(shape=(1500, 2000), n=8, rounds=2):
         for threads in (1, 2) * rounds:
             t0 = time.perf_counter()
             found = [D.survey(pick(frames), warp.conjugate(S), saturation=b.saturation, exposures=b.exposures,
-                              threads=threads) for _, pick, S in plane_views(sensor.cfa, ("Y",))]
+                              aperture=0.5 if sensor.cfa else 1.0, threads=threads) for _, pick, S in plane_views(sensor.cfa, ("Y",))]
             seconds = time.perf_counter() - t0
             result = [(f.codes.tobytes(), f.noise) for f in found]
             same = seen.setdefault("result", result) == result
@@ -256,6 +274,8 @@ if __name__ == "__main__" and sys.argv[1:] == ["threads"]:
     threads()
 elif __name__ == "__main__" and sys.argv[1:] == ["photos"]:
     photographs()
+elif __name__ == "__main__" and sys.argv[1:] == ["clean"]:
+    clean()
 elif __name__ == "__main__" and sys.argv[1:] == ["predict"]:
     for preset in ("raw12", "paper"):
         for scene in ("dead-leaves", "procedural"):

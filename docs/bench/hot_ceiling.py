@@ -69,8 +69,9 @@ def left_out_rendering(frames, warp, gain_prior, aperture):
 @contextmanager
 def predictions(median, nearest):
     """The search's two predictions of the scene replaced by ``median`` and ``nearest`` ``(F, H, W)``
-    (where the shipped ones know the scene at all: the same readings are tested)."""
-    shipped_scene, shipped_nearest = D.scene_along, D.nearest_along
+    (where the shipped ones know the scene at all: the same readings are tested), and its test against
+    a latent scene fitted without the suspects (:mod:`solve.leftout`) left out."""
+    shipped_scene, shipped_nearest, shipped_left_out = D.scene_along, D.nearest_along, D.left_out_hot
 
     def scene_along(frames, good, warp, threads=1):
         _, valid, from_frames = shipped_scene(frames, good, warp, threads=threads)
@@ -80,11 +81,14 @@ def predictions(median, nearest):
         _, valid = shipped_nearest(frames, good, warp, threads=threads)
         return nearest, valid
 
-    D.scene_along, D.nearest_along = scene_along, nearest_along
+    def left_out_hot(frames, *args, **kwargs):
+        return np.zeros(frames.shape[1:], bool)
+
+    D.scene_along, D.nearest_along, D.left_out_hot = scene_along, nearest_along, left_out_hot
     try:
         yield
     finally:
-        D.scene_along, D.nearest_along = shipped_scene, shipped_nearest
+        D.scene_along, D.nearest_along, D.left_out_hot = shipped_scene, shipped_nearest, shipped_left_out
 
 
 def replaced(mode, ideal, plane, warp, aperture):
@@ -107,12 +111,12 @@ def codes_of(b, sensor, mode):
         ideal = np.ascontiguousarray(pick(b.ideal[..., None]), np.float32)
         plane, conjugate = pick(frames), warp.conjugate(S)
         if mode == "shipped":
-            found = D.detect(plane, conjugate, saturation=b.saturation)
+            found = D.detect(plane, conjugate, saturation=b.saturation, aperture=aperture)
         else:
             with predictions(*replaced(mode, ideal, plane, conjugate, aperture)):
-                found = D.detect(plane, conjugate, saturation=b.saturation)
+                found = D.detect(plane, conjugate, saturation=b.saturation, aperture=aperture)
             if mode == "latent, noisy":
-                found = np.maximum(found, D.detect(plane, conjugate, saturation=b.saturation))
+                found = np.maximum(found, D.detect(plane, conjugate, saturation=b.saturation, aperture=aperture))
         pick(codes[..., None])[...] = found
     return codes
 

@@ -60,6 +60,7 @@ import numpy as np
 
 from ..metrics import MAD_TO_SIGMA
 from .along import MIN_FIT_FRAMES, local_median, offset_scores, responses, robust_spread
+from .leftout import left_out_hot
 from .noise import NoiseModel
 from .noise import fit as fit_noise
 from .noise import level_and_scatter
@@ -121,10 +122,12 @@ LEVEL_STEPS = 3.0
 SAFE_PEAK = (2.0**-32, 2.0**32)
 
 
-def detect(frames: np.ndarray, warp, *, saturation: float | None = None,
-           excluded: np.ndarray | None = None, exposures: np.ndarray | None = None, threads: int = 1) -> np.ndarray:
+def detect(frames: np.ndarray, warp, *, saturation: float | None = None, excluded: np.ndarray | None = None,
+           exposures: np.ndarray | None = None, aperture: float = 1.0, latent: bool = True,
+           threads: int = 1) -> np.ndarray:
     """Defect code of every photosite of one plane, ``(H, W)`` uint8 (:data:`KINDS`): :func:`survey`'s."""
-    return survey(frames, warp, saturation=saturation, excluded=excluded, exposures=exposures, threads=threads).codes
+    return survey(frames, warp, saturation=saturation, excluded=excluded, exposures=exposures, aperture=aperture,
+                  latent=latent, threads=threads).codes
 
 
 @dataclass(frozen=True)
@@ -136,16 +139,20 @@ class Survey:
     noise: NoiseModel | None
 
 
-def survey(frames: np.ndarray, warp, *, saturation: float | None = None,
-           excluded: np.ndarray | None = None, exposures: np.ndarray | None = None, threads: int = 1) -> Survey:
+def survey(frames: np.ndarray, warp, *, saturation: float | None = None, excluded: np.ndarray | None = None,
+           exposures: np.ndarray | None = None, aperture: float = 1.0, latent: bool = True,
+           threads: int = 1) -> Survey:
     """The defects of one plane and the noise of its readings.
 
     ``frames`` ``(F, H, W)`` are as read (black subtracted); ``exposures`` ``(F,)``, each frame's
     exposure relative to the reference's, brings them to the reference's (a stuck photosite reads
     one value as read, not after). ``warp`` maps between their grids (``pair(s, t,
     region)``, :mod:`geometry.warps`), ``excluded`` ``(F, H, W)`` marks readings that do not follow
-    it (moving objects). Fewer than :data:`MIN_FRAMES` frames: all healthy, noise unknown. The
-    statistics along the frames run a strip of rows at a time on ``threads`` threads (the same
+    it (moving objects), ``aperture`` is a photosite's width in plane pixels (0.5 on a CFA colour's
+    plane: :class:`solve.scene.SceneOptions`); ``latent``: on such a plane, the likeliest hot photosites
+    tested again against a latent scene fitted without them (:mod:`solve.leftout`, from
+    :data:`MIN_FIT_FRAMES` frames). Fewer than :data:`MIN_FRAMES` frames: all healthy,
+    noise unknown. The statistics along the frames run a strip of rows at a time on ``threads`` threads (the same
     result on any number).
     """
     read = np.asarray(frames, np.float32)
@@ -210,6 +217,12 @@ def survey(frames: np.ndarray, warp, *, saturation: float | None = None,
     stuck &= sharp.lit | (read[0] > floor)
     if n_frames >= MIN_FIT_FRAMES:
         hot |= sharp.offsets > Z_SHARP_OFFSET
+    if latent and n_frames >= MIN_FIT_FRAMES and aperture < 1:
+        # on a CFA colour's plane, the likeliest hot photosites against a latent scene fitted without
+        # them (solve.leftout: one fit of the scene model, 5x the search's time on its own; a monochrome
+        # plane's own tested so where the scene solver runs, defective.offset_shown)
+        hot |= left_out_hot(frames, read, warp, sharp.response, tested=sharp.tested, noise=noise, floor=floor,
+                            aperture=aperture, good=good, exposures=exposures)
     stuck &= ~(silent & dead)
     dead &= ~stuck
     hot &= tested & ~dead & ~stuck
@@ -235,7 +248,9 @@ def _scores(response, typical: float, spread: np.ndarray, scatter, n, tested) ->
 class _Sharp(NamedTuple):
     """What the sharper prediction tells, per photosite (:func:`_sharp_tests`)."""
 
-    offsets: np.ndarray | None  # _offset_scores against it (None under MIN_FIT_FRAMES frames)
+    offsets: np.ndarray | None  # offset_scores against it (None under MIN_FIT_FRAMES frames)
+    response: np.ndarray  # the median ratio of reading to it, where at least MIN_FRAMES are predicted
+    tested: np.ndarray
     dim: np.ndarray  # _dark_scores against it
     unlit: np.ndarray  # its response under LOW_RESPONSE of the plane's, or fewer than MIN_FRAMES predicted
     lit: np.ndarray  # at the photosites asked: the median scene along the trajectory above the floor
@@ -260,11 +275,11 @@ def _sharp_tests(frames, good, warp, floor: float, noise, plane_typical: float, 
     response, scatter, n, *_ = responses(frames, x, usable, threads)
     tested = n >= MIN_FRAMES
     if not tested.any():
-        return _Sharp(np.zeros(tested.shape), dim, ~seen, lit)  # (no response: no offset either)
+        return _Sharp(np.zeros(tested.shape), response, tested, dim, ~seen, lit)  # (no response: no offset either)
     typical, spread, _ = robust_spread(response, tested)
     fit = frames.shape[0] >= MIN_FIT_FRAMES
     offsets = offset_scores(frames, x, usable, typical, spread, scatter, noise, threads) if fit else None
-    return _Sharp(offsets, dim, ~seen | (tested & (response < LOW_RESPONSE * typical)), lit)
+    return _Sharp(offsets, response, tested, dim, ~seen | (tested & (response < LOW_RESPONSE * typical)), lit)
 
 
 def _dark_scores(y: np.ndarray, x: np.ndarray, valid: np.ndarray, usable: np.ndarray, typical: float,

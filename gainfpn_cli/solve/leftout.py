@@ -1,0 +1,121 @@
+"""Hot photosites of a CFA colour's plane tested once more, against a latent scene fitted without them.
+
+The defect search's two predictions of the scene (:mod:`solve.predict`) come from the plane's
+readings of other frames as they lie: on an aliased plane (a colour of a mosaic, a sharp scene)
+they miss the edges a hot photosite's trajectory crosses, which is where its offset shows. The
+scene model (:mod:`solve.scenemodel`, a latent scene three times finer than the plane, every
+frame's readings sampling it) places those edges better, but fitted to a hot photosite's own
+readings it takes part of the offset up. So the photosites most likely to be hot, the
+:data:`SUSPECTS` share whose response against the sharper prediction is highest, are left out
+of one fit, with a control lattice of photosites (every :data:`CONTROL`-th on each axis) whose
+scores give a healthy photosite's scale, and each suspect's offset fitted with the gain
+(:func:`along.offset_scores`) against the scene rendered where it is is tested: hot past
+:data:`Z_LEFT_OUT` robust spreads of the control's (docs/limits.md, "Defective photosites").
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..metrics import MAD_TO_SIGMA
+from .along import MIN_FIT_FRAMES, offset_scores, responses
+from .scene import SceneOptions
+from .scenemodel import fit_tile
+from .tiling import Tile, power_of_two_scale, ramp, windows
+
+#: Share of a plane's photosites left out of the fit as suspects: those whose response against the
+#: sharper prediction is highest. On 240x320 raw12 RGGB dead-leaves bursts at 75 % exposure with
+#: 0.5 % defects (seeds 0-1 and 2-3; z 20-40 / over 40 of docs/limits.md's hotz table): 2 % found
+#: 88 / 96 % and 92 / 96 %, 5 % 87 / 95 % and 90 / 97 %, 10 % 88 / 93 % and 90 / 97 %.
+SUSPECTS = 0.05
+#: Period of the control lattice (photosites (i, j) with i % CONTROL == 1 and j % CONTROL == 2).
+CONTROL = 4
+#: Offset score (in the control photosites' robust spread) past which a suspect is hot. On the same
+#: bursts (and the healthy photosites flagged by the whole search on the four without defects): 6:
+#: 89 / 97 % and 92 / 97 % (6), 7: 87 / 95 % and 90 / 97 % (5), 8: 86 / 94 % and 87 / 95 % (3, as
+#: without the test).
+Z_LEFT_OUT = 7.0
+#: Readings of a suspect from which Z_LEFT_OUT applies as it is (8 frames); with fewer, the fit's own
+#: scatter over fewer degrees of freedom has heavier tails (:func:`threshold`: 10.8 at 6, 8.3 at 7). Ten
+#: defect-free 144x176 raw12 bursts (seeds 20-29), healthy photosites flagged of 253 440 at 6 / 7
+#: frames: dead leaves at 75 % with 7 throughout 41 / 18, with these 10 / 15, the search without the
+#: test 10 / 12 (7.5 %: 2 / 5 against 2 / 2; procedural 3 / 1 and 3 / 0 against 3 / 1 and 2 / 0).
+REFERENCE_READINGS = 8
+#: Fewest control photosites fitted for their scores' spread to be measured.
+MIN_CONTROL = 16
+#: The latent scene's samples per plane pixel on each axis (as docs/bench/hot_ceiling.py's). With 20
+#: CG iterations, 2 cost 0.6x of 3, and the bursts of Z_LEFT_OUT found 84 / 91 % and 86 / 96 % against
+#: 88 / 95 % and 89 / 97 %.
+SCALE = 3
+#: Conjugate-gradient iterations of each Gauss-Newton step at most (the scene solver's: 20). At 10 the
+#: fit of a 500x750 plane of 8 frames costs 0.64x, and those bursts found 87 / 95 % and 90 / 97 %.
+CG_ITERATIONS = 10
+
+
+def left_out_hot(frames, read, warp, response: np.ndarray, *, tested: np.ndarray, noise, floor: float,
+                 aperture: float, good, exposures=None) -> np.ndarray:
+    """The suspects of one plane that the latent scene fitted without them shows hot, ``(H, W)``
+    bool. ``frames`` are the readings as the search tests them (divided by their exposures),
+    ``read`` as read (``(F, H, W)``), ``exposures`` ``(F,)`` relative to the reference's (None: all
+    alike), ``warp`` maps between their grids; ``response`` is the sharper prediction's, where
+    ``tested``; ``noise`` the search's noise model, ``floor`` its lowest level for a ratio,
+    ``aperture`` the photosites' width in plane pixels (0.5 on a CFA colour's plane), ``good(t,
+    frame)`` frame ``t``'s usable readings. Offsets are fitted where at least
+    :data:`along.MIN_FIT_FRAMES` readings are usable."""
+    n_frames, h, w = read.shape
+    if not tested.any():
+        return np.zeros((h, w), bool)
+    suspects = tested & (response >= np.quantile(response[tested], 1 - SUSPECTS))
+    rows, cols = np.ogrid[:h, :w]
+    control = (rows % CONTROL == 1) & (cols % CONTROL == 2) & ~suspects
+    out = suspects | control
+    x, seen = _rendered(frames, read, warp, out, good, aperture, exposures)
+    usable = seen & (x > floor)
+    ratio, scatter, count, *_ = responses(frames, x, usable)
+    fitted = count >= MIN_FIT_FRAMES  # (offset_scores scores only those: 0 elsewhere)
+    healthy = control & fitted
+    if np.count_nonzero(healthy) < MIN_CONTROL:  # too few to tell a healthy photosite's scale
+        return np.zeros((h, w), bool)
+    typical = float(np.median(ratio[healthy]))
+    spread = MAD_TO_SIGMA * float(np.median(np.abs(ratio[healthy] - typical)))
+    offsets = offset_scores(frames, x, usable, typical, spread, scatter, noise)
+    centre = float(np.median(offsets[healthy]))
+    scale = MAD_TO_SIGMA * float(np.median(np.abs(offsets[healthy] - centre)))
+    shown = offsets - centre > threshold(count) * max(scale, 1e-12)
+    return suspects & fitted & shown
+
+
+def threshold(count: np.ndarray) -> np.ndarray:
+    """The score past which a suspect fitted on ``count`` readings is hot: :data:`Z_LEFT_OUT` from
+    :data:`REFERENCE_READINGS` on, above it under that, where the fit's own scatter, measured on
+    ``count - 2`` degrees of freedom, gives Student's heavier tails (the same tail probability)."""
+    from scipy import stats
+
+    tail = stats.t.sf(Z_LEFT_OUT, REFERENCE_READINGS - 2)
+    dof = np.maximum(np.asarray(count, np.float64) - 2, 1)
+    return np.maximum(Z_LEFT_OUT, stats.t.isf(tail, dof))
+
+
+def _rendered(frames, read, warp, out: np.ndarray, good, aperture: float, exposures):
+    """The latent scene fitted without the photosites ``out`` (nor the readings ``good`` refuses),
+    rendered at every photosite in every frame (divided by the exposures; 0 where a photosite does
+    not see it), and where a reading is usable (``(F, H, W)`` float32 and bool); tiles of the scene
+    solver's size, blended across their halos."""
+    n_frames, h, w = read.shape
+    options = SceneOptions(scale=SCALE, aperture=aperture, refine_frames=False, cg_iterations=CG_ITERATIONS)
+    usable = np.stack([good(t, frames[t]) for t in range(n_frames)])
+    exposures = None if exposures is None else tuple(float(e) for e in exposures)
+    total = np.zeros(read.shape, np.float32)
+    weight = np.zeros((h, w), np.float32)
+    for y0, x0, y1, x1 in windows((h, w), options.tile, options.halo):
+        crop = (slice(None), slice(y0, y1), slice(x0, x1))
+        tile = np.ascontiguousarray(read[crop], np.float32)
+        fit = fit_tile(Tile(y0, x0, tile, ~usable[crop] | out[None, y0:y1, x0:x1], warp, np.inf, options, exposures))
+        if fit is None:
+            continue
+        ramped = ramp((y1 - y0, x1 - x0), (y0, x0), (h, w), options.halo).astype(np.float32)
+        unit = np.float32(power_of_two_scale(tile))  # the tile's readings' unit (Tile.readings)
+        total[crop] += ramped * np.asarray(fit.predicted, np.float32).reshape(tile.shape) * unit
+        weight[y0:y1, x0:x1] += ramped
+    x = np.divide(total, weight[None], out=np.zeros_like(total), where=weight[None] > 0)
+    return x, usable
