@@ -196,14 +196,15 @@ def test_stuck_photosites_are_found_in_frames_of_different_exposures():
     assert (codes[stuck] > 0).all() and (codes[stuck] == D.STUCK).mean() >= 0.9
 
 
-def test_strips_of_rows_change_nothing(monkeypatch):
+@pytest.mark.parametrize("sensor", [MONO, RAW12])
+def test_strips_of_rows_change_nothing(monkeypatch, sensor):
     # the per-photosite statistics run a strip of rows at a time (memory): any strip height, the same
     # codes (here 7 rows of the 6 frames, and 1 row for the offset fit's quarter strips)
-    burst = simulate_burst(shape=(120, 160), n_frames=6, sensor=MONO, scene="dead-leaves", exposure=0.15,
+    burst = simulate_burst(shape=(120, 160), n_frames=6, sensor=sensor, scene="dead-leaves", exposure=0.15,
                            defects=0.01, seed=3)
-    whole = _codes(burst, MONO)
+    whole = _codes(burst, sensor)
     monkeypatch.setattr(stacks, "STRIP_READINGS", 7 * 6 * 160)
-    assert np.count_nonzero(whole) > 100 and np.array_equal(_codes(burst, MONO), whole)
+    assert np.count_nonzero(whole) > 100 and np.array_equal(_codes(burst, sensor), whole)
 
 
 @pytest.mark.parametrize("sensor", [MONO, RAW12])

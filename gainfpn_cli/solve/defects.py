@@ -222,7 +222,7 @@ def survey(frames: np.ndarray, warp, *, saturation: float | None = None, exclude
         # them (solve.leftout: one fit of the scene model, 5x the search's time on its own; a monochrome
         # plane's own tested so where the scene solver runs, defective.offset_shown)
         hot |= left_out_hot(frames, read, warp, sharp.response, tested=sharp.tested, noise=noise, floor=floor,
-                            aperture=aperture, good=good, exposures=exposures)
+                            aperture=aperture, good=good, exposures=exposures, threads=threads)
     stuck &= ~(silent & dead)
     dead &= ~stuck
     hot &= tested & ~dead & ~stuck

@@ -53,7 +53,7 @@ CG_ITERATIONS = 10
 
 
 def left_out_hot(frames, read, warp, response: np.ndarray, *, tested: np.ndarray, noise, floor: float,
-                 aperture: float, good, exposures=None) -> np.ndarray:
+                 aperture: float, good, exposures=None, threads: int = 1) -> np.ndarray:
     """The suspects of one plane that the latent scene fitted without them shows hot, ``(H, W)``
     bool. ``frames`` are the readings as the search tests them (divided by their exposures),
     ``read`` as read (``(F, H, W)``), ``exposures`` ``(F,)`` relative to the reference's (None: all
@@ -61,7 +61,8 @@ def left_out_hot(frames, read, warp, response: np.ndarray, *, tested: np.ndarray
     ``tested``; ``noise`` the search's noise model, ``floor`` its lowest level for a ratio,
     ``aperture`` the photosites' width in plane pixels (0.5 on a CFA colour's plane), ``good(t,
     frame)`` frame ``t``'s usable readings. Offsets are fitted where at least
-    :data:`along.MIN_FIT_FRAMES` readings are usable."""
+    :data:`along.MIN_FIT_FRAMES` readings are usable; the statistics along the frames run a strip of
+    rows at a time on ``threads`` threads (the same result on any number)."""
     n_frames, h, w = read.shape
     if not tested.any():
         return np.zeros((h, w), bool)
@@ -71,14 +72,14 @@ def left_out_hot(frames, read, warp, response: np.ndarray, *, tested: np.ndarray
     out = suspects | control
     x, seen = _rendered(frames, read, warp, out, good, aperture, exposures)
     usable = seen & (x > floor)
-    ratio, scatter, count, *_ = responses(frames, x, usable)
+    ratio, scatter, count, *_ = responses(frames, x, usable, threads)
     fitted = count >= MIN_FIT_FRAMES  # (offset_scores scores only those: 0 elsewhere)
     healthy = control & fitted
     if np.count_nonzero(healthy) < MIN_CONTROL:  # too few to tell a healthy photosite's scale
         return np.zeros((h, w), bool)
     typical = float(np.median(ratio[healthy]))
     spread = MAD_TO_SIGMA * float(np.median(np.abs(ratio[healthy] - typical)))
-    offsets = offset_scores(frames, x, usable, typical, spread, scatter, noise)
+    offsets = offset_scores(frames, x, usable, typical, spread, scatter, noise, threads)
     centre = float(np.median(offsets[healthy]))
     scale = MAD_TO_SIGMA * float(np.median(np.abs(offsets[healthy] - centre)))
     shown = offsets - centre > threshold(count) * max(scale, 1e-12)
@@ -117,5 +118,5 @@ def _rendered(frames, read, warp, out: np.ndarray, good, aperture: float, exposu
         unit = np.float32(power_of_two_scale(tile))  # the tile's readings' unit (Tile.readings)
         total[crop] += ramped * np.asarray(fit.predicted, np.float32).reshape(tile.shape) * unit
         weight[y0:y1, x0:x1] += ramped
-    x = np.divide(total, weight[None], out=np.zeros_like(total), where=weight[None] > 0)
-    return x, usable
+    np.divide(total, weight[None], out=total, where=weight[None] > 0)  # (0 where no tile fitted)
+    return total, usable
