@@ -6,7 +6,7 @@
     python docs/bench/defects.py deadz  # dead and stuck ones found, by how plainly they differ from a healthy one
     python docs/bench/defects.py predict  # the error of the two predictions of the scene (solve.predict)
     python docs/bench/defects.py photos   # healthy photosites flagged on photographs (scikit-image's)
-    python docs/bench/defects.py clean    # ... on ten defect-free 144x176 bursts per row, 6 and 7 frames
+    python docs/bench/defects.py clean    # ... on ten defect-free 144x176 bursts per row, 5-8 frames
     python docs/bench/defects.py model    # hot ones found by the scene model's offset test, by hotz's bins
     python docs/bench/defects.py model photos  # healthy photosites that test flags on photographs
     python docs/bench/defects.py model scores  # the healthy photosites' scores of that test
@@ -233,9 +233,9 @@ def photographs(scenes=PHOTOS, seeds=(40, 41)):
                   f"hot / dead / stuck {kinds[1:]}", flush=True)
 
 
-def clean(frames=(6, 7), seeds=range(20, 30)):
+def clean(frames=(5, 6, 7, 8), seeds=range(20, 30)):
     """Healthy photosites flagged on ten defect-free 144x176 bursts per sensor, scene and exposure
-    (true motion), at each frame count (docs/limits.md's table of them; about 3 minutes)."""
+    (true motion), at each frame count (docs/limits.md's table of them; about 20 minutes)."""
     for preset in ("raw12", "paper"):
         sensor = PRESETS[preset]
         for exposure in (0.75, 0.075):

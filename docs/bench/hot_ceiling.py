@@ -3,6 +3,7 @@ better prediction of the scene from the burst could go.
 
     python docs/bench/hot_ceiling.py                 # every row (about 40 minutes)
     python docs/bench/hot_ceiling.py raw12 dead-leaves 0.75
+    python docs/bench/hot_ceiling.py zalias raw12 dead-leaves 0.75   # shipped, by a detectability that counts aliasing
 
 Per sensor, scene and exposure (8 frames, two 240x320 bursts with 0.5 % defects, true motion):
 the share of the hot photosites that :func:`solve.defects.detect` flags, binned by
@@ -22,6 +23,11 @@ predictions of the scene it tests each photosite against (:mod:`solve.predict`) 
 * ``truth``: the scene itself.
 
 and, for each, the healthy photosites flagged on the same two bursts without defects.
+
+``zalias``: the shipped search's share binned both by ``hot_offset_z`` and by :func:`alias_z`, the same
+detectability with each frame's scene known only to within the ``latent`` (noise-free) prediction's
+error there: what a detector that predicted the scene as well as the plane's own samples allow could
+show.
 """
 import sys
 from contextlib import contextmanager
@@ -139,7 +145,45 @@ def row(preset, scene, exposure, seeds=(0, 1)):
     print(f"bins of hot_offset_z: {EDGES}", flush=True)
 
 
-if __name__ == "__main__" and len(sys.argv) == 4:
+def alias_z(b, sensor, where, latent):
+    """``hot_offset_z`` with each reading's variance raised by the square of its gain times the error
+    of the ``latent`` prediction ``(F, H, W)`` there."""
+    x = b.ideal[:, where].astype(np.float64)
+    a = b.gain[where].astype(np.float64)
+    error = latent[:, where].astype(np.float64) - x
+    var = (a * x / sensor.dn_per_e + sensor.read_noise_e**2) * sensor.dn_per_e**2 + 1 / 12.0 + (a * error) ** 2
+    offset = np.mean(b.frames[:, where].astype(np.float64) - sensor.black_level - a * x, axis=0)
+    w = 1 / var
+    xx, xb, bb = (w * x * x).sum(0) + 1 / sensor.fpn_pixel**2, (w * x).sum(0), w.sum(0)
+    return offset / np.sqrt(xx / (xx * bb - xb**2))
+
+
+def zalias_row(preset, scene, exposure, seeds=(0, 1)):
+    sensor = PRESETS[preset]
+    aperture = 1.0 if sensor.cfa is None else 0.5
+    total, found = {"z": np.zeros(6), "alias z": np.zeros(6)}, {"z": np.zeros(6), "alias z": np.zeros(6)}
+    for seed in seeds:
+        b = simulate_burst(shape=(240, 320), n_frames=8, sensor=sensor, scene=scene, exposure=exposure, seed=seed,
+                           defects=0.005)
+        hot = b.defects == D.HOT
+        latent = np.zeros(b.ideal.shape, np.float32)
+        warp = GlobalWarp(b.homographies)
+        for _, pick, S in plane_views(sensor.cfa, ("Y",)):
+            ideal = np.ascontiguousarray(pick(b.ideal[..., None]), np.float32)
+            pick(latent[..., None])[...] = left_out_rendering(ideal, warp.conjugate(S), 1e-3, aperture)
+        flagged = (codes_of(b, sensor, "shipped")[hot] > 0).astype(float)
+        for name, z in (("z", hot_offset_z(b, sensor, hot)), ("alias z", alias_z(b, sensor, hot, latent))):
+            bins = np.clip(np.digitize(z, EDGES) - 1, 0, len(EDGES) - 2)
+            total[name] += np.bincount(bins, minlength=6)
+            found[name] += np.bincount(bins, weights=flagged, minlength=6)
+    for name in total:
+        rates = " ".join(f"{f / t * 100:.0f}%({int(t)})" if t else "-" for f, t in zip(found[name], total[name]))
+        print(f"{preset:6s} {scene:12s} {exposure:5} shipped, by {name:7s}: {rates}", flush=True)
+
+
+if __name__ == "__main__" and len(sys.argv) == 5 and sys.argv[1] == "zalias":
+    zalias_row(sys.argv[2], sys.argv[3], float(sys.argv[4]))
+elif __name__ == "__main__" and len(sys.argv) == 4:
     row(sys.argv[1], sys.argv[2], float(sys.argv[3]))
 elif __name__ == "__main__":
     for preset in ("raw12", "paper"):

@@ -45,7 +45,9 @@ Kinds, in the order they are tested (:data:`KINDS` gives the codes of ``gain_map
   from a gain where the ratio's scatter over the frames hides it from the response; or readings far
   above the scene in every frame too dark for a response, at least :data:`MIN_FRAMES` of them
   (:func:`_dark_scores`, ``> Z_DEFECT``, and above ``Z_DEFECT / 2`` against the sharper prediction:
-  a stuck or hot photosite in a black region).
+  a stuck or hot photosite in a black region); or, on a CFA colour's plane, an offset far above a
+  control lattice's against a latent scene fitted without the likeliest hot photosites
+  (:mod:`solve.leftout`).
 
 Abnormally noisy photosites are not flagged: at scene edges of an aliased plane the prediction's
 error scatters a healthy photosite's readings as much (docs/limits.md).
@@ -149,11 +151,11 @@ def survey(frames: np.ndarray, warp, *, saturation: float | None = None, exclude
     one value as read, not after). ``warp`` maps between their grids (``pair(s, t,
     region)``, :mod:`geometry.warps`), ``excluded`` ``(F, H, W)`` marks readings that do not follow
     it (moving objects), ``aperture`` is a photosite's width in plane pixels (0.5 on a CFA colour's
-    plane: :class:`solve.scene.SceneOptions`); ``latent``: on such a plane, the likeliest hot photosites
-    tested again against a latent scene fitted without them (:mod:`solve.leftout`, from
-    :data:`MIN_FIT_FRAMES` frames). Fewer than :data:`MIN_FRAMES` frames: all healthy,
-    noise unknown. The statistics along the frames run a strip of rows at a time on ``threads`` threads (the same
-    result on any number).
+    plane: :class:`solve.scene.SceneOptions`); ``latent``: on such a plane, the likeliest hot
+    photosites tested again against a latent scene fitted without them (:mod:`solve.leftout`, from
+    :data:`MIN_FIT_FRAMES` frames). Fewer than :data:`MIN_FRAMES` frames: all healthy, noise
+    unknown. The statistics along the frames run a strip of rows at a time on ``threads`` threads
+    (the same result on any number).
     """
     read = np.asarray(frames, np.float32)
     peak, unit = float(np.max(read[0], initial=0.0)), 1.0
@@ -219,8 +221,8 @@ def survey(frames: np.ndarray, warp, *, saturation: float | None = None, exclude
         hot |= sharp.offsets > Z_SHARP_OFFSET
     if latent and n_frames >= MIN_FIT_FRAMES and aperture < 1:
         # on a CFA colour's plane, the likeliest hot photosites against a latent scene fitted without
-        # them (solve.leftout: one fit of the scene model, 5x the search's time on its own; a monochrome
-        # plane's own tested so where the scene solver runs, defective.offset_shown)
+        # them (solve.leftout: one fit of the scene model, 3.5x the rest of the search's time; a
+        # monochrome plane's are tested so where the scene solver runs, defective.offset_shown)
         hot |= left_out_hot(frames, read, warp, sharp.response, tested=sharp.tested, noise=noise, floor=floor,
                             aperture=aperture, good=good, exposures=exposures, threads=threads)
     stuck &= ~(silent & dead)
