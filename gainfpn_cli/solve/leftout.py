@@ -70,8 +70,8 @@ def left_out_hot(frames, read, warp, response: np.ndarray, *, tested: np.ndarray
     rows, cols = np.ogrid[:h, :w]
     control = (rows % CONTROL == 1) & (cols % CONTROL == 2) & ~suspects
     out = suspects | control
-    x, seen = _rendered(frames, read, warp, out, good, aperture, exposures)
-    usable = seen & (x > floor)
+    x, usable = _rendered(frames, read, warp, out, good, aperture, exposures)
+    usable &= x > floor
     ratio, scatter, count, *_ = responses(frames, x, usable, threads)
     fitted = count >= MIN_FIT_FRAMES  # (offset_scores scores only those: 0 elsewhere)
     healthy = control & fitted
@@ -101,22 +101,24 @@ def _rendered(frames, read, warp, out: np.ndarray, good, aperture: float, exposu
     """The latent scene fitted without the photosites ``out`` (nor the readings ``good`` refuses),
     rendered at every photosite in every frame (divided by the exposures; 0 where a photosite does
     not see it), and where a reading is usable (``(F, H, W)`` float32 and bool); tiles of the scene
-    solver's size, blended across their halos."""
+    solver's size, blended across their halos where each sees the reading (near a seam a reading of
+    a shaken frame can fall outside one tile's scene: that tile's rendering is 0 there, not a value)."""
     n_frames, h, w = read.shape
     options = SceneOptions(scale=SCALE, aperture=aperture, refine_frames=False, cg_iterations=CG_ITERATIONS)
     usable = np.stack([good(t, frames[t]) for t in range(n_frames)])
     exposures = None if exposures is None else tuple(float(e) for e in exposures)
     total = np.zeros(read.shape, np.float32)
-    weight = np.zeros((h, w), np.float32)
+    weight = np.zeros(read.shape, np.float32)
     for y0, x0, y1, x1 in windows((h, w), options.tile, options.halo):
         crop = (slice(None), slice(y0, y1), slice(x0, x1))
         tile = np.ascontiguousarray(read[crop], np.float32)
         fit = fit_tile(Tile(y0, x0, tile, ~usable[crop] | out[None, y0:y1, x0:x1], warp, np.inf, options, exposures))
         if fit is None:
             continue
-        ramped = ramp((y1 - y0, x1 - x0), (y0, x0), (h, w), options.halo).astype(np.float32)
-        unit = np.float32(power_of_two_scale(tile))  # the tile's readings' unit (Tile.readings)
+        sees = (np.asarray(fit.A.wv) != 0).any(axis=1).reshape(tile.shape)  # (rows out of view: zero weights)
+        ramped = ramp((y1 - y0, x1 - x0), (y0, x0), (h, w), options.halo).astype(np.float32) * sees
+        unit = np.float32(power_of_two_scale(tile.astype(np.float64)))  # the tile's readings' unit (Tile.readings)
         total[crop] += ramped * np.asarray(fit.predicted, np.float32).reshape(tile.shape) * unit
-        weight[y0:y1, x0:x1] += ramped
-    np.divide(total, weight[None], out=total, where=weight[None] > 0)  # (0 where no tile fitted)
+        weight[crop] += ramped
+    np.divide(total, weight, out=total, where=weight > 0)  # (0 where no tile sees the reading)
     return total, usable
