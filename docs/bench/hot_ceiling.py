@@ -24,7 +24,7 @@ predictions of the scene it tests each photosite against (:mod:`solve.predict`) 
 
 and, for each, the healthy photosites flagged on the same two bursts without defects.
 
-``zalias``: the shipped search's share binned both by ``hot_offset_z`` and by :func:`alias_z`, the same
+``zalias``: the shipped search's share binned both by ``hot_offset_z`` and by the same
 detectability with each frame's scene known only to within the ``latent`` (noise-free) prediction's
 error there: what a detector that predicted the scene as well as the plane's own samples allow could
 show.
@@ -75,9 +75,8 @@ def left_out_rendering(frames, warp, gain_prior, aperture):
 @contextmanager
 def predictions(median, nearest):
     """The search's two predictions of the scene replaced by ``median`` and ``nearest`` ``(F, H, W)``
-    (where the shipped ones know the scene at all: the same readings are tested), and its test against
-    a latent scene fitted without the suspects (:mod:`solve.leftout`) left out."""
-    shipped_scene, shipped_nearest, shipped_left_out = D.scene_along, D.nearest_along, D.left_out_hot
+    (where the shipped ones know the scene at all: the same readings are tested)."""
+    shipped_scene, shipped_nearest = D.scene_along, D.nearest_along
 
     def scene_along(frames, good, warp, threads=1):
         _, valid, from_frames = shipped_scene(frames, good, warp, threads=threads)
@@ -87,14 +86,11 @@ def predictions(median, nearest):
         _, valid = shipped_nearest(frames, good, warp, threads=threads)
         return nearest, valid
 
-    def left_out_hot(frames, *args, **kwargs):
-        return np.zeros(frames.shape[1:], bool)
-
-    D.scene_along, D.nearest_along, D.left_out_hot = scene_along, nearest_along, left_out_hot
+    D.scene_along, D.nearest_along = scene_along, nearest_along
     try:
         yield
     finally:
-        D.scene_along, D.nearest_along, D.left_out_hot = shipped_scene, shipped_nearest, shipped_left_out
+        D.scene_along, D.nearest_along = shipped_scene, shipped_nearest
 
 
 def replaced(mode, ideal, plane, warp, aperture):
@@ -119,8 +115,8 @@ def codes_of(b, sensor, mode):
         if mode == "shipped":
             found = D.detect(plane, conjugate, saturation=b.saturation, aperture=aperture)
         else:
-            with predictions(*replaced(mode, ideal, plane, conjugate, aperture)):
-                found = D.detect(plane, conjugate, saturation=b.saturation, aperture=aperture)
+            with predictions(*replaced(mode, ideal, plane, conjugate, aperture)):  # (the latent scene's test off)
+                found = D.detect(plane, conjugate, saturation=b.saturation, aperture=aperture, latent=False)
             if mode == "latent, noisy":
                 found = np.maximum(found, D.detect(plane, conjugate, saturation=b.saturation, aperture=aperture))
         pick(codes[..., None])[...] = found
@@ -145,19 +141,6 @@ def row(preset, scene, exposure, seeds=(0, 1)):
     print(f"bins of hot_offset_z: {EDGES}", flush=True)
 
 
-def alias_z(b, sensor, where, latent):
-    """``hot_offset_z`` with each reading's variance raised by the square of its gain times the error
-    of the ``latent`` prediction ``(F, H, W)`` there."""
-    x = b.ideal[:, where].astype(np.float64)
-    a = b.gain[where].astype(np.float64)
-    error = latent[:, where].astype(np.float64) - x
-    var = (a * x / sensor.dn_per_e + sensor.read_noise_e**2) * sensor.dn_per_e**2 + 1 / 12.0 + (a * error) ** 2
-    offset = np.mean(b.frames[:, where].astype(np.float64) - sensor.black_level - a * x, axis=0)
-    w = 1 / var
-    xx, xb, bb = (w * x * x).sum(0) + 1 / sensor.fpn_pixel**2, (w * x).sum(0), w.sum(0)
-    return offset / np.sqrt(xx / (xx * bb - xb**2))
-
-
 def zalias_row(preset, scene, exposure, seeds=(0, 1)):
     sensor = PRESETS[preset]
     aperture = 1.0 if sensor.cfa is None else 0.5
@@ -172,7 +155,8 @@ def zalias_row(preset, scene, exposure, seeds=(0, 1)):
             ideal = np.ascontiguousarray(pick(b.ideal[..., None]), np.float32)
             pick(latent[..., None])[...] = left_out_rendering(ideal, warp.conjugate(S), 1e-3, aperture)
         flagged = (codes_of(b, sensor, "shipped")[hot] > 0).astype(float)
-        for name, z in (("z", hot_offset_z(b, sensor, hot)), ("alias z", alias_z(b, sensor, hot, latent))):
+        aliased = hot_offset_z(b, sensor, hot, scene_error=latent.astype(np.float64) - b.ideal)
+        for name, z in (("z", hot_offset_z(b, sensor, hot)), ("alias z", aliased)):
             bins = np.clip(np.digitize(z, EDGES) - 1, 0, len(EDGES) - 2)
             total[name] += np.bincount(bins, minlength=6)
             found[name] += np.bincount(bins, weights=flagged, minlength=6)

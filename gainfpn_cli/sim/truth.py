@@ -125,17 +125,20 @@ def load_truth(sim_dir: str | Path) -> Truth:
     return Truth(gain=gain["Y"], ideal=ideal["Y"], homographies=homographies, parameters=parameters, defects=defects)
 
 
-def hot_offset_z(burst: Burst, sensor: Sensor, where: np.ndarray) -> np.ndarray:
+def hot_offset_z(burst: Burst, sensor: Sensor, where: np.ndarray, scene_error: np.ndarray | None = None) -> np.ndarray:
     """How plainly the burst shows each photosite ``where``'s offset: the mean of its readings
     minus the truth ``a x_t`` over the offset's standard error with the scene known (``y_t = a x_t
     + b``, shot, read and rounding noise; the gain ``a`` unknown with the sensor's pixel FPN as
     prior, ``N(1, fpn^2)``). Along a flat trajectory this is the offset over (level x FPN): an
     offset there reads as a gain; a trajectory across an edge tells them apart. At z >= 6 a
     detector that knew the scene would find 98 % of the hot photosites above a threshold that
-    flags 1e-4 of the healthy ones."""
+    flags 1e-4 of the healthy ones. ``scene_error`` ``(F, H, W)``: the scene known only to within it
+    (each reading's variance raised by the square of its gain times it there)."""
     x = burst.ideal[:, where].astype(np.float64)  # the reading a gain of 1 gives, DN
     a = burst.gain[where].astype(np.float64)
     var = (a * x / sensor.dn_per_e + sensor.read_noise_e**2) * sensor.dn_per_e**2 + 1 / 12.0
+    if scene_error is not None:
+        var += (a * scene_error[:, where].astype(np.float64)) ** 2
     offset = np.mean(burst.frames[:, where].astype(np.float64) - sensor.black_level - a * x, axis=0)
     w = 1 / var
     xx, xb, bb = (w * x * x).sum(0) + 1 / sensor.fpn_pixel**2, (w * x).sum(0), w.sum(0)

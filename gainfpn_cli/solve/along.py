@@ -106,15 +106,20 @@ def offset_scores(y: np.ndarray, x: np.ndarray, fitted: np.ndarray, typical: flo
     return score
 
 
+def centre_and_spread(picked: np.ndarray) -> tuple[float, float]:
+    """The median of the values ``picked`` (a copy, overwritten: no other temporary) and their robust
+    spread, MAD_TO_SIGMA times their median absolute deviation from it."""
+    centre = float(np.median(picked, overwrite_input=True))
+    np.abs(np.subtract(picked, centre, out=picked), out=picked)
+    return centre, MAD_TO_SIGMA * float(np.median(picked, overwrite_input=True))
+
+
 def robust_spread(values: np.ndarray, tested: np.ndarray) -> tuple[float, float, np.ndarray]:
     """The median of ``values`` over the ``tested`` photosites, their robust spread (MAD), and
     per photosite that spread or, where larger, the robust spread of the tested values about the
     median over its 5x5 neighbourhood."""
-    picked = values[tested]  # (in place from here: each temporary is a plane's, 96 MB at 12 MP in float64)
-    centre = float(np.median(picked, overwrite_input=True))
-    np.abs(np.subtract(picked, centre, out=picked), out=picked)
-    spread = MAD_TO_SIGMA * float(np.median(picked, overwrite_input=True))
-    del picked
+    # (in place: each temporary is a plane's, 96 MB at 12 MP in float64)
+    centre, spread = centre_and_spread(values[tested])
     deviation = np.abs(np.subtract(values, centre, dtype=values.dtype), dtype=values.dtype)
     deviation[~tested] = 0.0
     around = local_median(deviation)

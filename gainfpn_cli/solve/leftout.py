@@ -17,8 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..metrics import MAD_TO_SIGMA
-from .along import MIN_FIT_FRAMES, offset_scores, responses
+from .along import MIN_FIT_FRAMES, centre_and_spread, offset_scores, responses
 from .scene import SceneOptions
 from .scenemodel import fit_tile
 from .tiling import Tile, power_of_two_scale, ramp, windows
@@ -77,11 +76,9 @@ def left_out_hot(frames, read, warp, response: np.ndarray, *, tested: np.ndarray
     healthy = control & fitted
     if np.count_nonzero(healthy) < MIN_CONTROL:  # too few to tell a healthy photosite's scale
         return np.zeros((h, w), bool)
-    typical = float(np.median(ratio[healthy]))
-    spread = MAD_TO_SIGMA * float(np.median(np.abs(ratio[healthy] - typical)))
+    typical, spread = centre_and_spread(ratio[healthy])
     offsets = offset_scores(frames, x, usable, typical, spread, scatter, noise, threads)
-    centre = float(np.median(offsets[healthy]))
-    scale = MAD_TO_SIGMA * float(np.median(np.abs(offsets[healthy] - centre)))
+    centre, scale = centre_and_spread(offsets[healthy])
     shown = offsets - centre > threshold(count) * max(scale, 1e-12)
     return suspects & fitted & shown
 
