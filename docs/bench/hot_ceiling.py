@@ -4,6 +4,7 @@ better prediction of the scene from the burst could go.
     python docs/bench/hot_ceiling.py                 # every row (about 40 minutes)
     python docs/bench/hot_ceiling.py raw12 dead-leaves 0.75
     python docs/bench/hot_ceiling.py zalias raw12 dead-leaves 0.75   # shipped, by a detectability that counts aliasing
+    python docs/bench/hot_ceiling.py latent raw12 dead-leaves 0.75   # the latent scene's test with its scene replaced
 
 Per sensor, scene and exposure (8 frames, two 240x320 bursts with 0.5 % defects, true motion):
 the share of the hot photosites that :func:`solve.defects.detect` flags, binned by
@@ -24,10 +25,20 @@ predictions of the scene it tests each photosite against (:mod:`solve.predict`) 
 
 and, for each, the healthy photosites flagged on the same two bursts without defects.
 
-``zalias``: the shipped search's share binned both by ``hot_offset_z`` and by the same
+``zalias``: the shipped search's share (seeds 0-1 and 2-3) binned both by ``hot_offset_z`` and by the same
 detectability with each frame's scene known only to within the ``latent`` (noise-free) prediction's
 error there: what a detector that predicted the scene as well as the plane's own samples allow could
 show.
+
+The ``latent`` command: the shipped search (seeds 0-1 and 2-3) with the scene that the latent scene's test of a
+CFA colour's plane (:mod:`solve.leftout`) scores the suspects against replaced by
+
+* ``noise-free``: the same fit (the same suspects and control left out) of the noise-free readings;
+* ``cross-colour``: the shipped fit's rendering, corrected in each frame by the other colours as the
+  simulator saw them at each photosite, noise-free (the green light at a red or blue photosite, red
+  plus blue at a green one): in each 3x3 window of the plane the rendering fitted as a line of that
+  light, evaluated at the window's centre (the edges placed where the other colours have them);
+* ``the scene``: the noise-free frames themselves.
 """
 import sys
 from contextlib import contextmanager
@@ -38,9 +49,11 @@ sys.path.insert(0, str(__import__("pathlib").Path(__file__).resolve().parents[2]
 from gainfpn_cli.geometry.planes import plane_views
 from gainfpn_cli.geometry.warps import GlobalWarp
 from gainfpn_cli.sim.sensor import PRESETS
+from gainfpn_cli.sim import simulate as sim
 from gainfpn_cli.sim.simulate import simulate_burst
 from gainfpn_cli.sim.truth import hot_offset_z
 from gainfpn_cli.solve import defects as D
+from gainfpn_cli.solve import leftout as L
 from gainfpn_cli.solve import predict as P
 from gainfpn_cli.solve.scene import SceneOptions, prepare
 from gainfpn_cli.solve.scenemodel import fit_tile
@@ -165,8 +178,92 @@ def zalias_row(preset, scene, exposure, seeds=(0, 1)):
         print(f"{preset:6s} {scene:12s} {exposure:5} shipped, by {name:7s}: {rates}", flush=True)
 
 
-if __name__ == "__main__" and len(sys.argv) == 5 and sys.argv[1] == "zalias":
-    zalias_row(sys.argv[2], sys.argv[3], float(sys.argv[4]))
+@contextmanager
+def light_captured(into):
+    """The simulator's light before its mosaic, ``(H, W, 3)`` per frame, appended to ``into``."""
+    shipped = sim._mosaic
+
+    def mosaic(rgb, cfa):
+        into.append(np.asarray(rgb, np.float32))
+        return shipped(rgb, cfa)
+
+    sim._mosaic = mosaic
+    try:
+        yield
+    finally:
+        sim._mosaic = shipped
+
+
+def local_line(value, guide, radius=1):
+    """``value`` fitted in each window of ``2 radius + 1`` photosites as a line of ``guide`` and
+    evaluated at the window's centre (the ridge ``1e-4`` of the guide's 99th percentile squared)."""
+    import cv2
+
+    out = np.empty_like(value)
+    for t in range(len(value)):
+        g, v = guide[t].astype(np.float64), value[t].astype(np.float64)
+        box = lambda a: cv2.boxFilter(a, -1, (2 * radius + 1,) * 2, borderType=cv2.BORDER_REFLECT)
+        mg, mv = box(g), box(v)
+        slope = (box(g * v) - mg * mv) / (box(g * g) - mg * mg + 1e-4 * np.percentile(g, 99) ** 2)
+        out[t] = mv + slope * (g - mg)
+    return out
+
+
+@contextmanager
+def latent_scene(mode, ideal, other):
+    """The latent scene's test scoring against ``mode``'s scene (see the module)."""
+    shipped = L._rendered
+
+    def rendered(frames, read, warp, out, good, aperture, exposures):
+        x, usable = shipped(frames, ideal if mode == "noise-free" else read, warp, out, good, aperture, exposures)
+        if mode == "cross-colour":
+            x = local_line(x, other)
+        return (ideal.copy() if mode == "the scene" else x), usable
+
+    L._rendered = rendered
+    try:
+        yield
+    finally:
+        L._rendered = shipped
+
+
+def latent_row(preset, scene, exposure, seeds=(0, 1)):
+    sensor = PRESETS[preset]
+    scale = exposure * sensor.full_well_e * sensor.dn_per_e  # light 1 in DN
+    bursts = []
+    for seed in seeds:
+        light = []
+        with light_captured(light):
+            b = simulate_burst(shape=(240, 320), n_frames=8, sensor=sensor, scene=scene, exposure=exposure,
+                               seed=seed, defects=0.005)
+        hot = b.defects == D.HOT
+        bins = np.clip(np.digitize(hot_offset_z(b, sensor, hot), EDGES) - 1, 0, len(EDGES) - 2)
+        bursts.append((b, scale * np.stack(light), hot, bins))
+    for mode in ("shipped", "noise-free", "cross-colour", "the scene"):
+        total, found = np.zeros(6), np.zeros(6)
+        for b, light, hot, bins in bursts:
+            frames = (b.frames.astype(np.float32) - sensor.black_level)[..., None]
+            warp = GlobalWarp(b.homographies)
+            codes = np.zeros(hot.shape, np.uint8)
+            for name, pick, S in plane_views(sensor.cfa, ("Y",)):
+                ideal = np.ascontiguousarray(pick(b.ideal[..., None]), np.float32)
+                others = light[..., [1]] if name[0] in "RB" else light[..., [0, 2]]
+                other = np.ascontiguousarray(pick(others.sum(axis=-1, keepdims=True)), np.float32)
+                with latent_scene(mode, ideal, other):
+                    pick(codes[..., None])[...] = D.detect(pick(frames), warp.conjugate(S), saturation=b.saturation,
+                                                           aperture=0.5)
+            total += np.bincount(bins, minlength=6)
+            found += np.bincount(bins, weights=(codes[hot] > 0).astype(float), minlength=6)
+        rates = " ".join(f"{f / t * 100:.0f}%({int(t)})" if t else "-" for f, t in zip(found, total))
+        print(f"{preset:6s} {scene:12s} {exposure:5} seeds {seeds} latent test against {mode:12s}: {rates}", flush=True)
+
+
+if __name__ == "__main__" and len(sys.argv) == 5 and sys.argv[1] == "latent":
+    for seeds in ((0, 1), (2, 3)):
+        latent_row(sys.argv[2], sys.argv[3], float(sys.argv[4]), seeds)
+elif __name__ == "__main__" and len(sys.argv) == 5 and sys.argv[1] == "zalias":
+    for seeds in ((0, 1), (2, 3)):
+        zalias_row(sys.argv[2], sys.argv[3], float(sys.argv[4]), seeds)
 elif __name__ == "__main__" and len(sys.argv) == 4:
     row(sys.argv[1], sys.argv[2], float(sys.argv[3]))
 elif __name__ == "__main__":
