@@ -91,7 +91,7 @@ def test_a_latent_scene_fitted_without_the_suspects_finds_hot_photosites_of_shar
     assert clean <= 1e-4 * burst.defects.size
 
 
-def test_the_latent_scene_is_rendered_across_its_tiles_seams_as_in_one_tile(monkeypatch):
+def test_the_latent_scene_is_rendered_across_its_tiles_seams_as_in_one_tile_on_any_number_of_processes(monkeypatch):
     # a shaken burst (frames 10-20 px apart) whose colour plane is taller than a tile: near the seam a
     # reading falls outside one tile's scene in some frames, where that tile renders 0, not a value;
     # blended only where each tile sees the reading, the rendering is close to one tile's
@@ -102,10 +102,11 @@ def test_the_latent_scene_is_rendered_across_its_tiles_seams_as_in_one_tile(monk
     out = np.zeros(plane.shape[1:], bool)
     out[::4, ::4] = True
 
-    def rendered():
-        return leftout._rendered(plane, plane, warp, out, lambda t, frame: frame > 0, 0.5, None)[0]
+    def rendered(workers=1):
+        return leftout._rendered(plane, plane, warp, out, lambda t, frame: frame > 0, 0.5, None, workers)[0]
 
     tiled = rendered()
+    np.testing.assert_array_equal(rendered(workers=2), tiled)  # its tiles fitted on two processes: the same
     monkeypatch.setattr(leftout, "SceneOptions", lambda **kw: SceneOptions(**{**kw, "tile": 1024}))
     whole = rendered()
     band = (slice(None), slice(230, 280))  # the plane's rows about the seam at 256

@@ -15,8 +15,11 @@ scores give a healthy photosite's scale, and each suspect's offset fitted with t
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
+from ..parallel import map_ordered
 from .along import MIN_FIT_FRAMES, centre_and_spread, offset_scores, responses
 from .scene import SceneOptions
 from .scenemodel import fit_tile
@@ -60,8 +63,9 @@ def left_out_hot(frames, read, warp, response: np.ndarray, *, tested: np.ndarray
     ``tested``; ``noise`` the search's noise model, ``floor`` its lowest level for a ratio,
     ``aperture`` the photosites' width in plane pixels (0.5 on a CFA colour's plane), ``good(t,
     frame)`` frame ``t``'s usable readings. Offsets are fitted where at least
-    :data:`along.MIN_FIT_FRAMES` readings are usable; the statistics along the frames run a strip of
-    rows at a time on ``threads`` threads (the same result on any number)."""
+    :data:`along.MIN_FIT_FRAMES` readings are usable; the latent scene's tiles are fitted on
+    ``threads`` worker processes and the statistics along the frames run a strip of rows at a time on
+    as many threads (the same result on any number)."""
     n_frames, h, w = read.shape
     if not tested.any():
         return np.zeros((h, w), bool)
@@ -69,7 +73,7 @@ def left_out_hot(frames, read, warp, response: np.ndarray, *, tested: np.ndarray
     rows, cols = np.ogrid[:h, :w]
     control = (rows % CONTROL == 1) & (cols % CONTROL == 2) & ~suspects
     out = suspects | control
-    x, usable = _rendered(frames, read, warp, out, good, aperture, exposures)
+    x, usable = _rendered(frames, read, warp, out, good, aperture, exposures, threads)
     usable &= x > floor
     ratio, scatter, count, *_ = responses(frames, x, usable, threads)
     fitted = count >= MIN_FIT_FRAMES  # (offset_scores scores only those: 0 elsewhere)
@@ -90,32 +94,61 @@ def threshold(count: np.ndarray) -> np.ndarray:
     from scipy import stats
 
     tail = stats.t.sf(Z_LEFT_OUT, REFERENCE_READINGS - 2)
-    dof = np.maximum(np.asarray(count, np.float64) - 2, 1)
-    return np.maximum(Z_LEFT_OUT, stats.t.isf(tail, dof))
+    count = np.asarray(count, np.intp)  # (readings: a few values, SciPy's quantile once for each)
+    dof = np.maximum(np.arange(count.max(initial=0) + 1) - 2.0, 1)
+    return np.maximum(Z_LEFT_OUT, stats.t.isf(tail, dof))[count]
 
 
-def _rendered(frames, read, warp, out: np.ndarray, good, aperture: float, exposures):
+def _rendered(frames, read, warp, out: np.ndarray, good, aperture: float, exposures, workers: int = 1):
     """The latent scene fitted without the photosites ``out`` (nor the readings ``good`` refuses),
     rendered at every photosite in every frame (divided by the exposures; 0 where a photosite does
     not see it), and where a reading is usable (``(F, H, W)`` float32 and bool); tiles of the scene
-    solver's size, blended across their halos where each sees the reading (near a seam a reading of
-    a shaken frame can fall outside one tile's scene: that tile's rendering is 0 there, not a value)."""
+    solver's size, fitted on ``workers`` processes (:func:`parallel.map_ordered`) and blended across
+    their halos where each sees the reading (near a seam a reading of a shaken frame can fall outside
+    one tile's scene: that tile's rendering is 0 there, not a value)."""
     n_frames, h, w = read.shape
     options = SceneOptions(scale=SCALE, aperture=aperture, refine_frames=False, cg_iterations=CG_ITERATIONS)
     usable = np.stack([good(t, frames[t]) for t in range(n_frames)])
     exposures = None if exposures is None else tuple(float(e) for e in exposures)
+    boxes = windows((h, w), options.tile, options.halo)
+    tiles = _Crops(boxes, lambda y0, x0, y1, x1: Tile(
+        y0, x0, np.ascontiguousarray(read[:, y0:y1, x0:x1], np.float32),
+        ~usable[:, y0:y1, x0:x1] | out[None, y0:y1, x0:x1], warp, np.inf, options, exposures))
     total = np.zeros(read.shape, np.float32)
     weight = np.zeros(read.shape, np.float32)
-    for y0, x0, y1, x1 in windows((h, w), options.tile, options.halo):
-        crop = (slice(None), slice(y0, y1), slice(x0, x1))
-        tile = np.ascontiguousarray(read[crop], np.float32)
-        fit = fit_tile(Tile(y0, x0, tile, ~usable[crop] | out[None, y0:y1, x0:x1], warp, np.inf, options, exposures))
-        if fit is None:
+    for (y0, x0, y1, x1), fitted in zip(boxes, map_ordered(_render_tile, tiles, workers=workers)):
+        if fitted is None:
             continue
-        sees = (np.asarray(fit.A.wv) != 0).any(axis=1).reshape(tile.shape)  # (rows out of view: zero weights)
+        rendering, sees = fitted
+        crop = (slice(None), slice(y0, y1), slice(x0, x1))
         ramped = ramp((y1 - y0, x1 - x0), (y0, x0), (h, w), options.halo).astype(np.float32) * sees
-        unit = np.float32(power_of_two_scale(tile.astype(np.float64)))  # the tile's readings' unit (Tile.readings)
-        total[crop] += ramped * np.asarray(fit.predicted, np.float32).reshape(tile.shape) * unit
+        total[crop] += ramped * rendering
         weight[crop] += ramped
     np.divide(total, weight, out=total, where=weight > 0)  # (0 where no tile sees the reading)
     return total, usable
+
+
+def _render_tile(tile: Tile) -> tuple[np.ndarray, np.ndarray] | None:
+    """One tile's latent scene fitted and rendered at its readings (in the frames' units), and which
+    readings it sees (``(F, h, w)`` float32 and bool); None if it could not be fitted."""
+    fit = fit_tile(tile)
+    if fit is None:
+        return None
+    shape = tile.frames.shape
+    sees = (np.asarray(fit.A.wv) != 0).any(axis=1).reshape(shape)  # (rows out of view: zero weights)
+    unit = np.float32(power_of_two_scale(tile.frames.astype(np.float64)))  # the tile's readings' unit (Tile.readings)
+    return np.asarray(fit.predicted, np.float32).reshape(shape) * unit, sees
+
+
+class _Crops(Sequence):
+    """``crop(*box)`` of each of ``boxes``, made as it is asked for: a plane's tiles (their halos
+    twice over) are not all held at once."""
+
+    def __init__(self, boxes, crop):
+        self.boxes, self.crop = boxes, crop
+
+    def __len__(self):
+        return len(self.boxes)
+
+    def __getitem__(self, i):
+        return self.crop(*self.boxes[i])
