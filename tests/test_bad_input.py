@@ -107,6 +107,27 @@ def test_mixed_sizes_and_cfa_layouts(burst, tmp_path):
     _assert_refused(_estimate([burst], tmp_path / "out"), tmp_path / "out", "frame_009.exr", "GRBG")
 
 
+@pytest.mark.parametrize("blank", [0, 255])
+def test_a_frame_whose_every_pixel_is_defective(tmp_path, blank):
+    # a frame read as black or as white throughout (a readout that failed): no scene to follow in it
+    burst = simulate_burst(shape=(64, 80), n_frames=5, seed=5)
+    burst.frames[2] = blank
+    save_burst(burst, tmp_path / "burst", fmt="exr")
+    _assert_refused(_estimate([tmp_path / "burst"], tmp_path / "out"), tmp_path / "out", "frame 2:",
+                    "could be tracked")
+
+
+def test_a_dark_frame_of_another_size_or_sensor(burst, tmp_path):
+    io.write_exr(tmp_path / "small.exr", {"Y": np.zeros((32, 40), np.float32)})
+    _assert_refused(_estimate([burst], tmp_path / "out", "--dark", str(tmp_path / "small.exr")), tmp_path / "out",
+                    "small.exr: dark frame is 40x32", "the frames are 80x64")
+    rng = np.random.default_rng(1)  # a tenth of its photosites hot: not this sensor's dark frame
+    dark = rng.normal(0.0, 1.0, (64, 80)).astype(np.float32) + 50.0 * (rng.random((64, 80)) < 0.1)
+    io.write_exr(tmp_path / "other.exr", {"Y": dark})
+    _assert_refused(_estimate([burst], tmp_path / "out", "--dark", str(tmp_path / "other.exr")), tmp_path / "out",
+                    "% of the photosites of plane Y read as defective", "the dark frame is not this sensor's")
+
+
 def test_exr_and_raw_frames_mixed(burst, tmp_path):
     raw = simulate_burst(shape=(64, 80), n_frames=1, seed=1, sensor=PRESETS["raw12"]).frames[0]
     write_dng(burst / "frame_009.dng", raw, bits=12, cfa="RGGB", black=[256] * 4, white=4095)
