@@ -214,8 +214,9 @@ def latent_scene(mode, ideal, other):
     """The latent scene's test scoring against ``mode``'s scene (see the module)."""
     shipped = L._rendered
 
-    def rendered(frames, read, warp, out, good, aperture, exposures):
-        x, usable = shipped(frames, ideal if mode == "noise-free" else read, warp, out, good, aperture, exposures)
+    def rendered(frames, read, warp, out, good, aperture, exposures, workers=1):
+        x, usable = shipped(frames, ideal if mode == "noise-free" else read, warp, out, good, aperture, exposures,
+                            workers)
         if mode == "cross-colour":
             x = local_line(x, other)
         return (ideal.copy() if mode == "the scene" else x), usable
