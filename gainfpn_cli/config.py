@@ -131,7 +131,7 @@ class InputConfig:
     )
     defects_latent: bool = _key(
         True, boolean, "on a RAW CFA burst of 6+ frames, test the likeliest hot photosites again against a latent "
-        "scene fitted without them: more of them found on sharp scenes, at 4-5x the defect search's time"
+        "scene fitted without them: more of them found on sharp scenes, at about 3x the defect search's time"
     )
     exposure: str = _key(
         "per-frame",
@@ -208,7 +208,9 @@ class SolverConfig:
         "photosites whose mean reading is less than this many times its noise (measured on the burst) are not "
         "solved: k = 1, confidence 0 (0 = every photosite above black)",
     )
-    workers: int = _key(2, positive_int, "processes that solve blocks in parallel, and threads of the defect search")
+    workers: int = _key(
+        2, positive_int, "processes that solve blocks in parallel, and the defect search's threads and processes"
+    )
     max_condition: float = _key(
         1e4, positive_float, "a block system worse conditioned than this gets the smallest ridge that fixes it"
     )

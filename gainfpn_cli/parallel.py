@@ -84,22 +84,36 @@ def map_ordered(
         raise ValueError(f"workers must be >= 1, got {workers}")
     if executor is not None:
         return executor.map(fn, tasks, progress)
+    return list(imap_ordered(fn, tasks, workers=workers, progress=progress))
+
+
+def imap_ordered(
+    fn: Callable[[T], R],
+    tasks: Sequence[T],
+    *,
+    workers: int = 2,
+    progress: Callable[[int], None] | None = None,
+) -> Iterator[R]:
+    """:func:`map_ordered`'s results on local processes, yielded in task order as each comes: a
+    caller that folds them in holds one at a time. The workers stop when the results are all
+    taken, or at once when the caller stops taking them (or fails)."""
+    if workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
     if workers == 1 or len(tasks) <= 1:
-        return list(_serial(fn, tasks, progress))
+        yield from _serial(fn, tasks, progress)
+        return
     import multiprocessing as mp
 
     with single_threaded_children():
         pool = mp.get_context("spawn").Pool(min(workers, len(tasks)), initializer=_init_worker)
     try:
-        results = []
         for result in pool.imap(fn, tasks):  # in task order, as each completes in turn
-            results.append(result)
             if progress:
                 progress(1)
+            yield result
         pool.close()
         pool.join()
-        return results
-    except BaseException:  # a failed task, Ctrl-C or SIGTERM: stop the workers now, not after their tasks
+    except BaseException:  # a failed task, Ctrl-C, SIGTERM, or the results left (GeneratorExit): stop the workers now
         pool.terminate()
         pool.join()
         raise

@@ -108,8 +108,9 @@ def test_mixed_sizes_and_cfa_layouts(burst, tmp_path):
 
 
 @pytest.mark.parametrize("blank", [0, 255])
-def test_a_frame_whose_every_pixel_is_defective(tmp_path, blank):
-    # a frame read as black or as white throughout (a readout that failed): no scene to follow in it
+def test_a_frame_whose_every_pixel_is_defective_is_refused_by_the_tracking(tmp_path, blank):
+    # a frame read as black or as white throughout (a readout that failed): no scene to follow in it,
+    # refused before the defect search (whose own guard, over 5 % of a plane, is the dark frame's test below)
     burst = simulate_burst(shape=(64, 80), n_frames=5, seed=5)
     burst.frames[2] = blank
     save_burst(burst, tmp_path / "burst", fmt="exr")

@@ -58,3 +58,16 @@ def test_a_python_caller_gets_single_threaded_blas_and_the_commands_result(tmp_p
     assert threads["in_solve"] and set(threads["in_solve"]) == {1}
     planes, _ = read_exr_planes(out / "gain_map.exr")
     np.testing.assert_array_equal(np.load(tmp_path / "k.npy")[..., 0], planes["Y"])
+
+
+def test_results_come_in_task_order_and_workers_stop_when_they_are_left():
+    from multiprocessing import active_children
+
+    from gainfpn_cli.parallel import imap_ordered, map_ordered
+
+    tasks = [-3, 1, -4, 1, -5, 9, -2, 6]
+    assert map_ordered(abs, tasks, workers=2) == map_ordered(abs, tasks, workers=1) == [abs(t) for t in tasks]
+    taken = imap_ordered(abs, tasks, workers=2)
+    assert [next(taken), next(taken)] == [3, 1] and len(active_children()) == 2
+    taken.close()  # the caller stops taking results (a failure while folding them in): the pool goes
+    assert active_children() == []

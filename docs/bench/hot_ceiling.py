@@ -33,11 +33,13 @@ show.
 The ``latent`` command: the shipped search (seeds 0-1 and 2-3) with the scene that the latent scene's test of a
 CFA colour's plane (:mod:`solve.leftout`) scores the suspects against replaced by
 
-* ``noise-free``: the same fit (the same suspects and control left out) of the noise-free readings;
+* ``noise-free``: the same fit (the same suspects and control left out) of the ideal readings (no
+  noise, no gain FPN, no defects);
 * ``cross-colour``: the shipped fit's rendering, corrected in each frame by the other colours as the
   simulator saw them at each photosite, noise-free (the green light at a red or blue photosite, red
   plus blue at a green one): in each 3x3 window of the plane the rendering fitted as a line of that
-  light, evaluated at the window's centre (the edges placed where the other colours have them);
+  light, evaluated at the window's centre (the edges placed where the other colours have them), over
+  the readings the fit sees;
 * ``the scene``: the noise-free frames themselves.
 """
 import sys
@@ -196,16 +198,20 @@ def light_captured(into):
 
 def local_line(value, guide, radius=1):
     """``value`` fitted in each window of ``2 radius + 1`` photosites as a line of ``guide`` and
-    evaluated at the window's centre (the ridge ``1e-4`` of the guide's 99th percentile squared)."""
+    evaluated at the window's centre (the ridge ``1e-4`` of the guide's 99th percentile squared);
+    only the readings the rendering sees (``value > 0``) are fitted, and the others left as they are."""
     import cv2
 
-    out = np.empty_like(value)
+    out = np.array(value)
     for t in range(len(value)):
         g, v = guide[t].astype(np.float64), value[t].astype(np.float64)
-        box = lambda a: cv2.boxFilter(a, -1, (2 * radius + 1,) * 2, borderType=cv2.BORDER_REFLECT)
-        mg, mv = box(g), box(v)
-        slope = (box(g * v) - mg * mv) / (box(g * g) - mg * mg + 1e-4 * np.percentile(g, 99) ** 2)
-        out[t] = mv + slope * (g - mg)
+        seen = (v > 0).astype(np.float64)
+        box = lambda a: cv2.boxFilter(a * seen, -1, (2 * radius + 1,) * 2, normalize=False,
+                                      borderType=cv2.BORDER_REFLECT)
+        n = np.maximum(box(1.0), 1.0)
+        mg, mv = box(g) / n, box(v) / n
+        slope = (box(g * v) / n - mg * mv) / (box(g * g) / n - mg * mg + 1e-4 * np.percentile(g, 99) ** 2)
+        out[t] = np.where(v > 0, mv + slope * (g - mg), v)
     return out
 
 

@@ -221,7 +221,7 @@ def survey(frames: np.ndarray, warp, *, saturation: float | None = None, exclude
         hot |= sharp.offsets > Z_SHARP_OFFSET
     if latent and n_frames >= MIN_FIT_FRAMES and aperture < 1:
         # on a CFA colour's plane, the likeliest hot photosites against a latent scene fitted without
-        # them (solve.leftout: one fit of the scene model, 3.5x the rest of the search's time; a
+        # them (solve.leftout: one fit of the scene model, about 2x the rest of the search's time; a
         # monochrome plane's are tested so where the scene solver runs, defective.offset_shown)
         hot |= left_out_hot(frames, read, warp, sharp.response, tested=sharp.tested, noise=noise, floor=floor,
                             aperture=aperture, good=good, exposures=exposures, threads=threads)

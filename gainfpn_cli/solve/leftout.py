@@ -19,7 +19,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from ..parallel import map_ordered
+from ..parallel import imap_ordered
 from .along import MIN_FIT_FRAMES, centre_and_spread, offset_scores, responses
 from .scene import SceneOptions
 from .scenemodel import fit_tile
@@ -88,9 +88,10 @@ def left_out_hot(frames, read, warp, response: np.ndarray, *, tested: np.ndarray
 
 
 def threshold(count: np.ndarray) -> np.ndarray:
-    """The score past which a suspect fitted on ``count`` readings is hot: :data:`Z_LEFT_OUT` from
-    :data:`REFERENCE_READINGS` on, above it under that, where the fit's own scatter, measured on
-    ``count - 2`` degrees of freedom, gives Student's heavier tails (the same tail probability)."""
+    """The score past which a suspect fitted on ``count`` readings (non-negative integers) is hot:
+    :data:`Z_LEFT_OUT` from :data:`REFERENCE_READINGS` on, above it under that, where the fit's own
+    scatter, measured on ``count - 2`` degrees of freedom, gives Student's heavier tails (the same
+    tail probability)."""
     from scipy import stats
 
     tail = stats.t.sf(Z_LEFT_OUT, REFERENCE_READINGS - 2)
@@ -103,9 +104,10 @@ def _rendered(frames, read, warp, out: np.ndarray, good, aperture: float, exposu
     """The latent scene fitted without the photosites ``out`` (nor the readings ``good`` refuses),
     rendered at every photosite in every frame (divided by the exposures; 0 where a photosite does
     not see it), and where a reading is usable (``(F, H, W)`` float32 and bool); tiles of the scene
-    solver's size, fitted on ``workers`` processes (:func:`parallel.map_ordered`) and blended across
-    their halos where each sees the reading (near a seam a reading of a shaken frame can fall outside
-    one tile's scene: that tile's rendering is 0 there, not a value)."""
+    solver's size, fitted on ``workers`` local processes (:func:`parallel.imap_ordered`: each tile made
+    as a worker takes it, its rendering added in as it comes) and blended across their halos where
+    each sees the reading (near a seam a reading of a shaken frame can fall outside one tile's scene:
+    that tile's rendering is 0 there, not a value)."""
     n_frames, h, w = read.shape
     options = SceneOptions(scale=SCALE, aperture=aperture, refine_frames=False, cg_iterations=CG_ITERATIONS)
     usable = np.stack([good(t, frames[t]) for t in range(n_frames)])
@@ -116,7 +118,7 @@ def _rendered(frames, read, warp, out: np.ndarray, good, aperture: float, exposu
         ~usable[:, y0:y1, x0:x1] | out[None, y0:y1, x0:x1], warp, np.inf, options, exposures))
     total = np.zeros(read.shape, np.float32)
     weight = np.zeros(read.shape, np.float32)
-    for (y0, x0, y1, x1), fitted in zip(boxes, map_ordered(_render_tile, tiles, workers=workers)):
+    for (y0, x0, y1, x1), fitted in zip(boxes, imap_ordered(_render_tile, tiles, workers=workers)):
         if fitted is None:
             continue
         rendering, sees = fitted
@@ -142,7 +144,7 @@ def _render_tile(tile: Tile) -> tuple[np.ndarray, np.ndarray] | None:
 
 class _Crops(Sequence):
     """``crop(*box)`` of each of ``boxes``, made as it is asked for: a plane's tiles (their halos
-    twice over) are not all held at once."""
+    twice over) are not all held at once (the pool takes a task as a worker is ready for it)."""
 
     def __init__(self, boxes, crop):
         self.boxes, self.crop = boxes, crop
