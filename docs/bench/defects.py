@@ -11,6 +11,7 @@
     python docs/bench/defects.py model photos  # healthy photosites that test flags on photographs
     python docs/bench/defects.py model scores  # the healthy photosites' scores of that test
     python docs/bench/defects.py threads  # the search's time on 1 and 2 threads, 2000x1500x8 (same codes)
+    python docs/bench/defects.py holdout  # the hold-out on raw12 bursts with and without 1 % defects
 
 Per sensor preset, scene, exposure and frame count: the percentage of each simulated kind
 flagged (in parentheses: flagged as that kind), over two 240x320 bursts with 0.5 % defects; and
@@ -270,8 +271,35 @@ def threads(shape=(1500, 2000), n=8, rounds=2):
             print(f"{preset:6s} {threads} thread(s): {seconds:.2f} s, the same as on one: {same}", flush=True)
 
 
+def holdout(shapes=((160, 192), (192, 256)), seeds=(4, 5)):
+    """Does the hold-out check accept a burst for what k does to its hot photosites? ``api.estimate``
+    (motion estimated, defaults) of raw12 RGGB dead-leaves bursts of 7 frames at 30 %, each without and
+    with 1 % defects: the check's verdict and residual ratio, the share of k = 1, and the healthy
+    photosites' residual gain FPN against doing nothing."""
+    from gainfpn_cli import api
+    from gainfpn_cli.metrics import residual_fpn_percent
+
+    sensor = PRESETS["raw12"]
+    for shape in shapes:
+        for seed in seeds:
+            for frac in (0.0, 0.01):
+                b = simulate_burst(shape=shape, n_frames=7, sensor=sensor, scene="dead-leaves", exposure=0.3,
+                                   seed=seed, defects=frac)
+                r = api.estimate(b.frames.astype(np.float32) - sensor.black_level, cfa=sensor.cfa,
+                                 saturation=sensor.white_level - sensor.black_level)
+                healthy = np.ones(shape, bool) if b.defects is None else b.defects == D.HEALTHY
+                k = r.k[..., 0]
+                check = r.report.holdout
+                print(f"{shape[1]}x{shape[0]} seed {seed} defects {frac}: hold-out "
+                      f"{'accepted' if check.passed else 'rejected'} ({check.residual_ratio:.4f}), k = 1 on "
+                      f"{np.mean(k == 1) * 100:.0f} %, healthy residual {residual_fpn_percent(k, b.gain, healthy):.3f} % "
+                      f"against {residual_fpn_percent(np.ones_like(k), b.gain, healthy):.3f} %", flush=True)
+
+
 if __name__ == "__main__" and sys.argv[1:] == ["threads"]:
     threads()
+elif __name__ == "__main__" and sys.argv[1:] == ["holdout"]:
+    holdout()
 elif __name__ == "__main__" and sys.argv[1:] == ["photos"]:
     photographs()
 elif __name__ == "__main__" and sys.argv[1:] == ["clean"]:
