@@ -38,7 +38,8 @@ def check(burst, frames, excluded, exposures, n_fit, in_frame, solver: solving.S
         """The check of the grids ``names`` on their central ``side`` px."""
         regions = {name: r for name, r in solving.central(burst, frames, solver, side).items() if name in names}
         fitted = solving.solve_planes(
-            burst, frames, excluded, exposures, slice(1, n_fit), in_frame, solver, progress, regions=regions,
+            burst, frames, excluded, exposures, slice(1, n_fit), in_frame, solver, progress,
+            regions={name: [region] for name, region in regions.items()},
             models={name: p.fpn_model for name, p in reports.items()}, calibrations=calibrations)
         k_check, confidence_check = fitted.k, fitted.confidence
         return holdout_checks(frames, excluded, exposures, in_frame, k_check,

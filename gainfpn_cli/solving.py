@@ -137,10 +137,10 @@ def solve_planes(burst, frames, excluded, exposures, used: slice, in_frame, solv
     """k and confidence of every plane from the frames ``used``, with the FPN model and the gauge, and
     what goes with them (:class:`Planes`).
 
-    ``regions`` (grid name -> (rows, columns) slices) solves only there, and only the grids it names
+    ``regions`` (grid name -> list of (rows, columns) slices) solves only there, and only the grids it names
     (k = 1 and confidence 0 elsewhere); ``models`` (plane name -> FPN model) forces each plane's model;
     ``split`` measures the accurate solver's sigma_k and pixel FPN of each plane with two more fits, on
-    the even and the odd frames of ``used`` (on :func:`central` regions, and with
+    the even and the odd frames of ``used`` (on :func:`measured_regions`, and with
     :data:`MIN_SPLIT_FRAMES` or more; with fewer, its sigma_k on the burst the scene model predicts:
     :func:`bootstrapped`, which also sets the least the halves' factors are outside a CFA mosaic; the
     scene solver's sigma_k is measured by its noise probe, and halves of a burst are too few frames
@@ -218,7 +218,7 @@ def bootstrapped(burst, frames, excluded, exposures, used: slice, in_frame, solv
                  confidence) -> dict:
     """Each plane's :class:`solve.halves.Calibration` of the accurate solver's sigma_k, measured on the
     burst the scene model fitted to the frames ``used`` predicts (:mod:`solve.bootstrap`), on the
-    :func:`central` regions; ``k`` and ``confidence`` are the fit's, frame-shaped. Planes with too few
+    :func:`measured_regions`; ``k`` and ``confidence`` are the fit's, frame-shaped. Planes with too few
     pixels measured, and a CFA mosaic's (whose colour planes' latent scene is still aliased: docs/method.md
     section 8b), are not in it: their sigma_k is the halves' or the solver's own, as every plane's if a
     region's predicted burst cannot be fitted again."""
@@ -233,13 +233,12 @@ def bootstrapped(burst, frames, excluded, exposures, used: slice, in_frame, solv
     # refined, as the real frames' are what they are whatever the exposures the solver is given
     shifted = dataclasses.replace(solver.scene, refine_warps="shift")
     models = [{"frames": f, "motion": m, "saturation": burst.saturation, "excluded": x, "exposures": e,
-               "options": scene_options(shifted, grid)} for _, grid, (f, x, m, e) in jobs]
+               "options": scene_options(shifted, grid)} for _, grid, _, (f, x, m, e) in jobs]
     rendered = bootstrap.render_many(models, options=shifted, workers=solver.workers, progress=update,
                                      executor=solver.executor)
     problems, fits = [], []
-    for (_, grid, (f, x, m, e)), model in zip(jobs, rendered):
-        rows, columns = regions[grid.name]
-        k_fit, c_fit = grid.gather(k)[rows, columns], grid.gather(confidence)[rows, columns]
+    for (_, grid, region, (f, x, m, e)), model in zip(jobs, rendered):
+        k_fit, c_fit = grid.gather(k)[region], grid.gather(confidence)[region]
         gain = np.where(c_fit > 0, 1.0 / k_fit, 1.0)
         synthetic = bootstrap.synthetic_burst(model, gain, np.random.default_rng(BOOTSTRAP_SEED))
         problems.append({"frames": synthetic, "motion": m, "saturation": burst.saturation, "excluded": x,
@@ -252,12 +251,17 @@ def bootstrapped(burst, frames, excluded, exposures, used: slice, in_frame, solv
                                       executor=solver.executor)
     except EstimationError:  # a region the model could not render (no pixel seen twice): nothing measured
         return {}
-    out = {}
+    pieces, grids = {}, {}  # grid name -> its regions' (sigma_k, error) where measured
     for (grid, k_fit, c_fit, seen), result in zip(fits, results):
-        measured = bootstrap.calibration(sigma_from_confidence(c_fit), result.k / k_fit - 1,
-                                         seen & (c_fit > 0) & (result.confidence > 0))
+        use = seen & (c_fit > 0) & (result.confidence > 0)
+        pieces.setdefault(grid.name, []).append((sigma_from_confidence(c_fit)[use], (result.k / k_fit - 1)[use]))
+        grids[grid.name] = grid
+    out = {}
+    for name, parts in pieces.items():
+        sigma, error = (np.concatenate(p) for p in zip(*parts))
+        measured = bootstrap.calibration(sigma, error, np.ones(sigma.shape, bool))
         if measured is not None:
-            out.update(dict.fromkeys(grid.positions, measured))
+            out.update(dict.fromkeys(grids[name].positions, measured))
     return out
 
 
@@ -286,16 +290,16 @@ def solve_raws(burst, frames, excluded, exposures, useds, in_frame, solver: Solv
     if solver.method in ("accurate", "scene") and len(jobs) > 1:  # every grid's tiles on every worker
         update = progress("solve halves" if len(useds) > 1 else "solve", 0) if progress else None
         problems = [dict(frames=f, motion=m, saturation=burst.saturation, excluded=x, exposures=e,
-                         options=scene_options(solver.scene, grid)) for _, grid, (f, x, m, e) in jobs]
+                         options=scene_options(solver.scene, grid)) for _, grid, _, (f, x, m, e) in jobs]
         many = solve_accurate_many if solver.method == "accurate" else solve_scene_many
         results = many(problems, options=solver.accurate if solver.method == "accurate" else solver.scene,
                        workers=solver.workers, progress=update, executor=solver.executor)
     else:
         results = [solve_grid(f, x, m, burst.saturation, solver, progress, grid, exposures=e)
-                   for _, grid, (f, x, m, e) in jobs]
+                   for _, grid, _, (f, x, m, e) in jobs]
     out = [(np.ones(frames.shape[1:], np.float32), np.zeros(frames.shape[1:], np.float32), {},
             np.zeros(frames.shape[1:], bool)) for _ in useds]
-    for (i, grid, _), result in zip(jobs, results):
+    for (i, grid, region, _), result in zip(jobs, results):
         k, confidence, solved, hot = out[i]
         grid_hot = np.zeros(result.k.shape, bool)
         if solver.defects and result.offsets is not None and abs(grid.S[0, 0]) == 1:  # not a CFA colour's
@@ -303,18 +307,19 @@ def solve_raws(burst, frames, excluded, exposures, useds, in_frame, solver: Solv
         parts = (result.k, result.confidence, grid_hot)
         if grid_hot.any():  # copies only then (a 12 MP plane is 48 MB)
             parts = (np.where(grid_hot, 1, result.k), np.where(grid_hot, 0, result.confidence), grid_hot)
-        for plane, part, elsewhere in zip((k, confidence, hot), parts, (1, 0, False)):
-            if regions is not None:  # the region's, and k = 1, confidence 0 elsewhere
-                part, region = np.full(grid.shape, elsewhere, part.dtype), part
-                part[regions[grid.name]] = region
+        for plane, part in zip((k, confidence, hot), parts):
+            if region is not None:  # the region's, and elsewhere the grid's other regions' or k = 1, confidence 0
+                whole = grid.gather(plane)
+                whole[region] = part
+                part = whole
             grid.scatter(plane, part)
         solved.update({name: PlaneReport(solver.method, grid.name, result.stats) for name in grid.positions})
     return out
 
 
 def _jobs(burst, frames, excluded, exposures, useds, in_frame, solver: Solver, regions: dict | None) -> list:
-    """``(which of useds, grid, (frames, left out, motion, exposures))`` of every grid (in ``regions``,
-    if given) for each of the frame slices ``useds``."""
+    """``(which of useds, grid, region, (frames, left out, motion, exposures))`` of every grid, or every
+    one of its ``regions`` (None: all of it), for each of the frame slices ``useds``."""
     jobs = []
     for i, used in enumerate(useds):
         fit = frames[used]  # a slice: a view
@@ -324,22 +329,23 @@ def _jobs(burst, frames, excluded, exposures, useds, in_frame, solver: Solver, r
         for grid in grids_of(burst, frames, solver.method):
             if regions is not None and grid.name not in regions:
                 continue
-            grid_motion = motion.conjugate(grid.S)
-            if regions is None:
-                grid_frames = grid.gather(fit)
-                grid_left_out = None if left_out is None else grid.gather(left_out)
-                grid_dark = None if dark is None else grid.gather(dark)
-            else:
-                rows, columns = regions[grid.name]
-                grid_frames = _gather_region(grid, fit, rows, columns)
-                grid_left_out = None if left_out is None else _gather_region(grid, left_out, rows, columns)
-                grid_dark = None if dark is None else grid.gather(dark)[rows, columns]
-                grid_motion = grid_motion.conjugate(np.array([[1.0, 0, columns.start], [0, 1.0, rows.start],
-                                                              [0, 0, 1]]))
-            if grid_dark is not None and grid_dark.any():  # every reading of a photosite too dark, left out
-                grid_left_out = np.broadcast_to(grid_dark, grid_frames.shape) if grid_left_out is None \
-                    else grid_left_out | grid_dark
-            jobs.append((i, grid, (grid_frames, grid_left_out, grid_motion, exposures[used])))
+            for region in [None] if regions is None else regions[grid.name]:
+                grid_motion = motion.conjugate(grid.S)
+                if region is None:
+                    grid_frames = grid.gather(fit)
+                    grid_left_out = None if left_out is None else grid.gather(left_out)
+                    grid_dark = None if dark is None else grid.gather(dark)
+                else:
+                    rows, columns = region
+                    grid_frames = _gather_region(grid, fit, rows, columns)
+                    grid_left_out = None if left_out is None else _gather_region(grid, left_out, rows, columns)
+                    grid_dark = None if dark is None else grid.gather(dark)[rows, columns]
+                    grid_motion = grid_motion.conjugate(np.array([[1.0, 0, columns.start], [0, 1.0, rows.start],
+                                                                  [0, 0, 1]]))
+                if grid_dark is not None and grid_dark.any():  # every reading of a photosite too dark, left out
+                    grid_left_out = np.broadcast_to(grid_dark, grid_frames.shape) if grid_left_out is None \
+                        else grid_left_out | grid_dark
+                jobs.append((i, grid, region, (grid_frames, grid_left_out, grid_motion, exposures[used])))
     return jobs
 
 
@@ -350,21 +356,31 @@ def _gather_region(grid, stack, rows: slice, columns: slice) -> np.ndarray:
     return np.stack([grid.gather(one)[rows, columns] for one in stack])
 
 
-def central(burst, frames, solver: Solver, side: int | None = None, whole: int = 0) -> dict:
-    """The central ``side`` (default :data:`CHECK_SIDE`) px of every grid, all of an axis no longer than
-    ``whole`` px, as (rows, columns) slices by grid name."""
+def central(burst, frames, solver: Solver, side: int | None = None) -> dict:
+    """The central ``side`` (default :data:`CHECK_SIDE`) px of every grid, as (rows, columns) slices by
+    grid name."""
     side = CHECK_SIDE if side is None else side
-    regions = {}
-    for grid in grids_of(burst, frames, solver.method):
-        regions[grid.name] = tuple(slice(0, n) if n <= whole else slice(max(0, (n - side) // 2),
-                                                                       min(n, (n + side) // 2)) for n in grid.shape)
-    return regions
+    return {grid.name: tuple(slice(max(0, (n - side) // 2), min(n, (n + side) // 2)) for n in grid.shape)
+            for grid in grids_of(burst, frames, solver.method)}
 
 
 def measured_regions(burst, frames, solver: Solver) -> dict:
-    """Where k's error is measured (on halves, on the burst the scene model predicts): the :func:`central`
-    :data:`CHECK_SIDE` px of every grid, or all of an axis no longer than :data:`MEASURED_WHOLE` times that."""
-    return central(burst, frames, solver, whole=int(MEASURED_WHOLE * CHECK_SIDE))
+    """Where k's error is measured (on halves, on the burst the scene model predicts): each grid's
+    :func:`measured_squares`, by grid name."""
+    return {grid.name: measured_squares(grid.shape) for grid in grids_of(burst, frames, solver.method)}
+
+
+def measured_squares(shape) -> list:
+    """The (rows, columns) slices of a grid of ``shape`` that k's error is measured on: all of an axis no
+    longer than :data:`MEASURED_WHOLE` times :data:`CHECK_SIDE`, else CHECK_SIDE px about the centre of
+    each of its equal cells, one per :data:`MEASURED_SPACING` px of it (at least one: the central CHECK_SIDE)."""
+    spans = []
+    for n in shape:
+        count = max(1, round(n / MEASURED_SPACING))
+        starts = [int((j + 0.5) * n / count) - CHECK_SIDE // 2 for j in range(count)]
+        spans.append([slice(0, n)] if n <= MEASURED_WHOLE * CHECK_SIDE
+                     else [slice(start, start + CHECK_SIDE) for start in starts])
+    return [(rows, columns) for rows in spans[0] for columns in spans[1]]
 
 
 #: Side (px of each grid) of the central region the hold-out check fits again without the reference:
@@ -378,6 +394,11 @@ CHECK_SIDE = 256
 #: 8-bit bursts of 16 frames the least precise tenth erred 1.12-1.16x the written sigma_k measured along
 #: all 320 px, 1.12-1.30x on the central 256 (docs/limits.md, "Confidence").
 MEASURED_WHOLE = 1.5
+#: Spacing (px of a grid) of the squares k's error is measured on along an axis (:func:`measured_squares`):
+#: a large frame's scene is sampled across it, not at its centre alone. On the bench's 4000x3000x8
+#: dead-leaves burst (leaves up to 1000 px; `balanced`) the central 256 px set tenths of 0.69-1.07 over
+#: the frame, six squares 0.87-1.03, for 1.09x the estimate's time; a 12 MP mosaic's planes keep one.
+MEASURED_SPACING = 1536
 
 
 def scene_options(options: SceneOptions, grid) -> SceneOptions:
