@@ -34,7 +34,7 @@ from .solve.result import (
     sigma_from_confidence,
 )
 from .solve.scene import SceneOptions, solve_scene_many
-from .solve.tiling import usable
+from .solve.tiling import each_or_none, usable
 
 
 @dataclass(frozen=True)
@@ -246,13 +246,13 @@ def bootstrapped(burst, frames, excluded, exposures, used: slice, in_frame, solv
         # pixels whose every usable reading the model sees, a kernel's reach inside
         missed = np.any(usable(f, burst.saturation, x) & ~model.seen, axis=0).astype(np.float32)
         fits.append((grid, k_fit, c_fit, window_sum(missed, 2 * BOOTSTRAP_MARGIN + 1) == 0))
-    try:
-        results = solve_accurate_many(problems, options=solver.accurate, workers=solver.workers, progress=update,
-                                      executor=solver.executor)
-    except EstimationError:  # a region the model could not render (no pixel seen twice): nothing measured
-        return {}
+    # a square the model could not render (no pixel seen twice) measures nothing (None)
+    results = each_or_none(solve_accurate_many, problems, options=solver.accurate, workers=solver.workers,
+                           progress=update, executor=solver.executor)
     pieces, grids = {}, {}  # grid name -> its regions' (sigma_k, error) where measured
     for (grid, k_fit, c_fit, seen), result in zip(fits, results):
+        if result is None:
+            continue
         use = seen & (c_fit > 0) & (result.confidence > 0)
         pieces.setdefault(grid.name, []).append((sigma_from_confidence(c_fit)[use], (result.k / k_fit - 1)[use]))
         grids[grid.name] = grid
@@ -292,14 +292,21 @@ def solve_raws(burst, frames, excluded, exposures, useds, in_frame, solver: Solv
         problems = [dict(frames=f, motion=m, saturation=burst.saturation, excluded=x, exposures=e,
                          options=scene_options(solver.scene, grid)) for _, grid, _, (f, x, m, e) in jobs]
         many = solve_accurate_many if solver.method == "accurate" else solve_scene_many
-        results = many(problems, options=solver.accurate if solver.method == "accurate" else solver.scene,
-                       workers=solver.workers, progress=update, executor=solver.executor)
+        kwargs = dict(options=solver.accurate if solver.method == "accurate" else solver.scene,
+                      workers=solver.workers, progress=update, executor=solver.executor)
+        # of a grid's squares, one with nothing to compare leaves the others; a grid with none fails as a plane does
+        results = many(problems, **kwargs) if regions is None else each_or_none(many, problems, **kwargs)
+        fitted = {(i, grid.name) for (i, grid, _, _), result in zip(jobs, results) if result is not None}
+        if len(fitted) < len({(i, grid.name) for i, grid, _, _ in jobs}):
+            raise EstimationError("no pixel could be compared between frames (all clipped, dark or out of view)")
     else:
         results = [solve_grid(f, x, m, burst.saturation, solver, progress, grid, exposures=e)
                    for _, grid, _, (f, x, m, e) in jobs]
     out = [(np.ones(frames.shape[1:], np.float32), np.zeros(frames.shape[1:], np.float32), {},
             np.zeros(frames.shape[1:], bool)) for _ in useds]
     for (i, grid, region, _), result in zip(jobs, results):
+        if result is None:  # a square with nothing to compare (each_or_none): k = 1, confidence 0 there
+            continue
         k, confidence, solved, hot = out[i]
         grid_hot = np.zeros(result.k.shape, bool)
         if solver.defects and result.offsets is not None and abs(grid.S[0, 0]) == 1:  # not a CFA colour's

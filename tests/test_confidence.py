@@ -190,3 +190,25 @@ def test_the_halves_and_the_models_burst_measure_on_several_squares(monkeypatch)
     assert all(p.confidence_calibrated for p in result.report.planes.values())
     ratios = _deciles(result, burst)
     assert all(0.75 <= r <= 1.25 for r in ratios), ratios
+
+
+def test_a_square_with_nothing_to_compare_leaves_the_others_measuring(monkeypatch):
+    # a 12 MP photograph's squares may fall on a clipped sky or a black shadow (the photograph `coffee` at
+    # 4000x3000: the estimate stopped with "no pixel could be compared"); here one of four squares is clipped
+    # in every frame, and the halves and the model's burst measure on the other three
+    from gainfpn_cli import solving
+
+    monkeypatch.setattr(solving, "CHECK_SIDE", 64)
+    monkeypatch.setattr(solving, "MEASURED_SPACING", 128)
+    sensor = PRESETS["paper"]
+    burst = simulate_burst(sensor=sensor, n_frames=9, shape=(240, 320), scene="dead-leaves", seed=4)
+    frames = burst.frames.astype(np.float32) - sensor.black_level
+    white = sensor.white_level - sensor.black_level
+    frames[:, 10:110, 30:130] = white  # about the first square (rows 28-92, columns 48-112), however it moves
+    result = api.estimate(frames, saturation=white, **{"solver.workers": 2, "solver.method": "accurate"})
+    assert all(p.confidence_calibrated for p in result.report.planes.values())
+    k, confidence = result.k[..., 0], result.confidence[..., 0]
+    use = interior_mask(k.shape, MARGIN) & (confidence > 0)
+    use[:120, :150] = False  # the clipped patch and the frames' moves about it
+    ratios = confidence_deciles(k, burst.gain, sigma_from_confidence(confidence), use)
+    assert all(0.75 <= r <= 1.25 for r in ratios), ratios

@@ -194,3 +194,20 @@ def solve_tiles(prepared: list[list], solve_tile, assemble, *, workers: int, pro
         solved.append(assemble(tiles, results[start:start + len(tiles)]))
         start += len(tiles)
     return solved
+
+
+def each_or_none(many, problems: list, **kwargs) -> list:
+    """``many(problems, **kwargs)`` (a ``solve_*_many``), or where that fails because some problem has no
+    pixel to compare (:class:`EstimationError`), each problem alone: None for those that fail again.
+    For regions that only measure (a large plane's squares, :func:`solving.measured_squares`): one all
+    clipped or black leaves the others' measurement."""
+    try:
+        return many(problems, **kwargs)
+    except EstimationError:
+        out = []
+        for problem in problems:
+            try:
+                out.append(many([problem], **kwargs)[0])
+            except EstimationError:
+                out.append(None)
+        return out
