@@ -357,6 +357,25 @@ def test_a_smooth_error_both_halves_share_where_the_fpn_hides_it_is_counted():
     np.testing.assert_allclose(calibration.factor[3:], 1.0, rtol=0.1)
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_chance_high_of_the_fpn_where_sigma_is_least_is_not_taken_for_shared_error(seed):
+    # 5 % pixel FPN, its spread 2 % wider in the most precise tenth (a part's FPN variance scatters by
+    # about 3 % of itself on 3200 pixels: a chance high), and an error both halves share of 3x sigma_k in
+    # the least precise tenth, which opens the shared error's gate. Read part by part, the high took the
+    # most precise tenth's factor to 1.04-4.08 (seeds 0-5; k errs 1x there); the parts' excesses fitted
+    # non-decreasing in sigma_k pool it with its neighbours': 0.97-1.01
+    rng = np.random.default_rng(seed)
+    truth, k, confidence, halves = _halves(rng, pixel=0.05, factor=1.0)
+    sigma = sigma_from_confidence(confidence)
+    add = np.zeros(k.shape)
+    add[:, :20] = 0.02 * (truth[:, :20] - 1)  # sigma_k rises along the columns: the first 20 are the lowest tenth
+    add += np.where(sigma > np.quantile(sigma, 0.9), 3.0 * sigma * rng.standard_normal(k.shape), 0.0)
+    halves = Halves(halves.k_a + add, halves.confidence_a, halves.k_b + add, halves.confidence_b)
+    calibration = calibrate(k + add, sigma, halves, np.ones(k.shape), confidence > 0)
+    np.testing.assert_allclose(calibration.factor[:8], 1.0, atol=0.1)
+    assert calibration.factor[-1] > 2.5  # sqrt(1 + 3^2), taken in as far as it stands out of its noise
+
+
 def test_the_pixel_fpn_is_not_sliced_by_its_own_sigma():
     # a pixel's sigma_k falls with its own gain (its readings' information): on a flat scene the
     # deciles of its own sigma_k are deciles of the FPN itself, each far narrower than the whole

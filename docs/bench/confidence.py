@@ -6,6 +6,7 @@
     python docs/bench/confidence.py rggb640 [SEEDS]  # 640x480 12-bit RGGB dead leaves, 16 frames, per plane
     python docs/bench/confidence.py short [FRAMES]   # 12-bit RGGB bursts of 5 and 6 frames (40)
     python docs/bench/confidence.py structured       # sensors with column or row FPN (18)
+    python docs/bench/confidence.py big [SCENE:SEED,...]  # 4000x3000x8 bursts (default dead-leaves:2,procedural:3,coffee:4)
 
 Bursts of 240x320 rendered from scikit-image's sample photographs (not a dependency of gainfpn:
 ``pip install scikit-image``), 8-bit mono (``paper``) and 12-bit RGGB (``raw12``), at 50 % and
@@ -33,6 +34,10 @@ a seed.
 mono of 8 frames, 12-bit RGGB of 9; seeds 1 and 2), each with one frame more, as above (``error`` and
 ``sigma``: the RMS of k's actual error and of the written sigma_k). About 4 minutes.
 
+``big``: 4000x3000x8 bursts of the paper's sensor (the bench's `balanced, 12 MP` point at other scenes
+and seeds; SCENE a built-in scene or a scikit-image photograph), `balanced`: the tenths over the pixels
+8 px inside. About 2 minutes a burst.
+
 ``fit``: dark procedural 240x320 bursts of the paper's sensor (7.5 % exposure, where k's error is
 the noise's) of 3, 4, 5, 6, 8 and 12 frames, solved by the accurate solver with the true motion
 and PARTNERS partner frames (default 8): k's actual error over the written sigma_k (RMS over the
@@ -47,7 +52,7 @@ import time
 import numpy as np
 
 from gainfpn_cli import api
-from gainfpn_cli.metrics import confidence_deciles
+from gainfpn_cli.metrics import confidence_deciles, interior_mask
 from gainfpn_cli.sim.sensor import PRESETS
 from gainfpn_cli.sim.simulate import simulate_burst
 from gainfpn_cli.solve.result import sigma_from_confidence
@@ -103,9 +108,25 @@ def case(scene, preset, exposure, frames, seed=7, sensor=None):
                 solver=e.report.solver.method if e.report.solver else None)
 
 
+def big(cases=(("dead-leaves", 2), ("procedural", 3), ("coffee", 4))):
+    """One JSON line per (scene, seed): a 4000x3000x8 burst of the paper's sensor (supersampled 2x, as
+    the bench's `balanced, 12 MP` point), `--preset balanced`, the tenths over the pixels 8 px inside."""
+    for scene, seed in cases:
+        b = simulate_burst(shape=(3000, 4000), n_frames=8, scene=scene_of(scene), seed=seed, supersample=2)
+        fr = b.frames.astype(np.float32) - b.sensor.black_level
+        t = time.perf_counter()
+        e = api.estimate(fr, saturation=b.sensor.white_level - b.sensor.black_level, preset="balanced")
+        dt = time.perf_counter() - t
+        k, conf = e.k[..., 0], e.confidence[..., 0]
+        use = (conf > 0) & interior_mask(k.shape, 8)
+        deciles = [round(d, 2) for d in confidence_deciles(k, b.gain, sigma_from_confidence(conf), use)]
+        print(json.dumps(dict(scene=scene, seed=seed, s=round(dt, 1), status=e.report.status, deciles=deciles)),
+              flush=True)
+        del b, fr, e
+
+
 def fit(partners=8, seed=3):
     """One JSON line per frame count: the accurate solver's sigma_k against k's error (see the module)."""
-    from gainfpn_cli.metrics import interior_mask
     from gainfpn_cli.solve import accurate
 
     options = accurate.AccurateOptions(partners=partners, robust_rounds=1 if partners < 8 else 2)
@@ -204,6 +225,10 @@ if __name__ == "__main__":
         sys.exit()
     if len(sys.argv) > 1 and sys.argv[1] == "structured":
         structured()
+        sys.exit()
+    if len(sys.argv) > 1 and sys.argv[1] == "big":
+        big([(c.split(":")[0], int(c.split(":")[1])) for c in sys.argv[2].split(",")] if len(sys.argv) > 2
+            else (("dead-leaves", 2), ("procedural", 3), ("coffee", 4)))
         sys.exit()
     if len(sys.argv) > 1 and sys.argv[1] == "fit":
         fit(int(sys.argv[2]) if len(sys.argv) > 2 else 8)

@@ -212,19 +212,34 @@ def _shared(d_full: np.ndarray, cross: np.ndarray, parts, prior: float, prior_se
     of the neighbours' sigma_k, not of the pixel's own (which falls with its own gain, so its deciles
     slice the FPN: -9 to +3 %^2 about 25 %^2 on a smooth 8-bit burst, read as shared error). Counted
     only where the parts scatter about ``prior`` beyond chance (:data:`SHARED_P`): at 5 % pixel FPN a
-    part's FPN variance scatters by 0.4 %^2, several times ``sigma_k^2`` of a bright burst's pixels."""
+    part's FPN variance scatters by 0.4 %^2, several times ``sigma_k^2`` of a bright burst's pixels.
+
+    The error both halves share is what interpolation makes of the scene's detail, which raises the
+    residuals and so ``sigma_k``: it grows with the neighbours' ``sigma_k``, and the parts' excesses are
+    fitted so (non-decreasing, weighted by their sampling variances: :func:`scipy.optimize.isotonic_regression`),
+    each run of parts pooled to one excess and one standard error. A chance high of the FPN's scatter in
+    one part is then pooled with the parts beside it (a smooth shared error, which the fit spreads over
+    flat patches where ``sigma_k`` is least, is :func:`_smooth`'s)."""
+    from scipy.optimize import isotonic_regression
+
     shared = np.zeros(size)
-    excesses, t2s = [], []
+    excesses, variances = [], []
     for part in parts:
         beyond = (d_full[part] - d_full[part].mean()) ** 2 + cross[part]
-        excess = float(np.mean(beyond)) - prior
-        excesses.append(excess)
-        t2s.append(excess**2 / max(float(np.var(beyond)) / len(part) + prior_se**2, np.finfo(float).tiny))
+        excesses.append(float(np.mean(beyond)) - prior)
+        variances.append(max(float(np.var(beyond)) / len(part) + prior_se**2, np.finfo(float).tiny))
+    excesses, variances = np.array(excesses), np.array(variances)
     # chi-square's 1 - SHARED_P quantile with one degree of freedom per part
-    if not sum(t2s) > chi2_quantile(1 - SHARED_P, len(t2s)):
+    if not np.sum(excesses**2 / variances) > chi2_quantile(1 - SHARED_P, len(parts)):
         return shared
-    for part, excess, t2 in zip(parts, excesses, t2s):
-        shared[part] = max(excess, 0.0) * t2 / (SHARED_T2 + t2)  # taken in as far as it stands out of its noise
+    fit = isotonic_regression(excesses, weights=1.0 / variances)
+    for start, stop in zip(fit.blocks[:-1], fit.blocks[1:]):
+        excess, weights = float(fit.x[start]), 1.0 / variances[start:stop]
+        # the run's weighted mean's variance: its parts' own pooled, the prior's (in every part alike) not
+        t2 = excess**2 / (float(np.sum(weights**2 * (variances[start:stop] - prior_se**2))) / float(weights.sum()) ** 2
+                          + prior_se**2)
+        for part in parts[start:stop]:
+            shared[part] = max(excess, 0.0) * t2 / (SHARED_T2 + t2)  # taken in as far as it stands out of its noise
     return shared
 
 
