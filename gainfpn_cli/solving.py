@@ -220,8 +220,8 @@ def bootstrapped(burst, frames, excluded, exposures, used: slice, in_frame, solv
     burst the scene model fitted to the frames ``used`` predicts (:mod:`solve.bootstrap`), on the
     :func:`measured_regions`; ``k`` and ``confidence`` are the fit's, frame-shaped. Planes with too few
     pixels measured, and a CFA mosaic's (whose colour planes' latent scene is still aliased: docs/method.md
-    section 8b), are not in it: their sigma_k is the halves' or the solver's own, as every plane's if a
-    region's predicted burst cannot be fitted again."""
+    section 8b), are not in it: their sigma_k is the halves' or the solver's own, as every plane's whose
+    squares' predicted bursts cannot be fitted again (a square that cannot measures nothing)."""
     if burst.cfa is not None:
         return {}
     regions = measured_regions(burst, frames, solver)
@@ -254,7 +254,8 @@ def bootstrapped(burst, frames, excluded, exposures, used: slice, in_frame, solv
         if result is None:
             continue
         use = seen & (c_fit > 0) & (result.confidence > 0)
-        pieces.setdefault(grid.name, []).append((sigma_from_confidence(c_fit)[use], (result.k / k_fit - 1)[use]))
+        error = (result.k / k_fit - 1)[use]  # about its square's mean: each fit's gauge is its own
+        pieces.setdefault(grid.name, []).append((sigma_from_confidence(c_fit)[use], error - error.mean()))
         grids[grid.name] = grid
     out = {}
     for name, parts in pieces.items():
@@ -373,8 +374,16 @@ def central(burst, frames, solver: Solver, side: int | None = None) -> dict:
 
 def measured_regions(burst, frames, solver: Solver) -> dict:
     """Where k's error is measured (on halves, on the burst the scene model predicts): each grid's
-    :func:`measured_squares`, by grid name."""
-    return {grid.name: measured_squares(grid.shape) for grid in grids_of(burst, frames, solver.method)}
+    :func:`measured_squares` that are mostly photosites (a CFA's greens taken together lie on a lattice
+    turned 45 degrees, whose corners are off the sensor), by grid name."""
+    regions = {}
+    for grid in grids_of(burst, frames, solver.method):
+        squares = measured_squares(grid.shape)
+        if len(squares) > 1:
+            on = grid.gather(np.ones(frames.shape[1:], np.float32))
+            squares = [square for square in squares if on[square].mean() >= 0.5] or measured_squares(grid.shape)[:1]
+        regions[grid.name] = squares
+    return regions
 
 
 def measured_squares(shape) -> list:
@@ -384,7 +393,7 @@ def measured_squares(shape) -> list:
     spans = []
     for n in shape:
         count = max(1, round(n / MEASURED_SPACING))
-        starts = [int((j + 0.5) * n / count) - CHECK_SIDE // 2 for j in range(count)]
+        starts = [min(max(int((j + 0.5) * n / count) - CHECK_SIDE // 2, 0), n - CHECK_SIDE) for j in range(count)]
         spans.append([slice(0, n)] if n <= MEASURED_WHOLE * CHECK_SIDE
                      else [slice(start, start + CHECK_SIDE) for start in starts])
     return [(rows, columns) for rows in spans[0] for columns in spans[1]]

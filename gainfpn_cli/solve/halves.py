@@ -234,7 +234,7 @@ def _shared(d_full: np.ndarray, cross: np.ndarray, parts, prior: float, prior_se
         return shared
     fit = isotonic_regression(excesses, weights=1.0 / variances)
     for start, stop in zip(fit.blocks[:-1], fit.blocks[1:]):
-        excess, weights = float(fit.x[start]), 1.0 / variances[start:stop]
+        excess, weights = float(fit.x[start]), variances[start:stop].min() / variances[start:stop]  # scaled to <= 1
         # the run's weighted mean's variance: its parts' own pooled, the prior's (in every part alike) not
         t2 = excess**2 / (float(np.sum(weights**2 * (variances[start:stop] - prior_se**2))) / float(weights.sum()) ** 2
                           + prior_se**2)

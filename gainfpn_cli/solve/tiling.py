@@ -197,10 +197,10 @@ def solve_tiles(prepared: list[list], solve_tile, assemble, *, workers: int, pro
 
 
 def each_or_none(many, problems: list, **kwargs) -> list:
-    """``many(problems, **kwargs)`` (a ``solve_*_many``), or where that fails because some problem has no
-    pixel to compare (:class:`EstimationError`), each problem alone: None for those that fail again.
-    For regions that only measure (a large plane's squares, :func:`solving.measured_squares`): one all
-    clipped or black leaves the others' measurement."""
+    """``many(problems, **kwargs)`` (a ``solve_*_many``), or where that fails (:class:`EstimationError`:
+    a problem with no pixel to compare, found after all are solved), each problem alone: None for those
+    that fail again. For regions that only measure (a large plane's squares,
+    :func:`solving.measured_squares`): one all clipped or black leaves the others' measurement."""
     try:
         return many(problems, **kwargs)
     except EstimationError:
