@@ -161,7 +161,8 @@ def solve_planes(burst, frames, excluded, exposures, used: slice, in_frame, solv
                                     confidence)
     measures = {}
     if halves is not None and calibrations is None and solver.calibrated:
-        measures = {name: measure(pick(k), pick(confidence), Halves(*(pick(m) for half in halves for m in half)))
+        measures = {name: measure(pick(k), pick(confidence),
+                                  Halves(*(pick(m) for half in halves for m in half), not burst.cfa))
                     for name, pick, _ in plane_views(burst.cfa, burst.channels) if name in solved}
         if burst.cfa:  # a mosaic's priors, pooled
             pooled = pooled_priors({name: m.calibration for name, m in measures.items()})
@@ -178,7 +179,8 @@ def solve_planes(burst, frames, excluded, exposures, used: slice, in_frame, solv
         report, structured, calibration = solved[name], False, None
         kp = pick(k)
         if solver.calibrated:
-            plane_halves = None if halves is None else Halves(*(pick(m) for half in halves for m in half))
+            plane_halves = None if halves is None else \
+                Halves(*(pick(m) for half in halves for m in half), not burst.cfa)
             model = select_model(kp, pick(confidence), force=(models or {}).get(name) or solver.fpn_model,
                                  halves=plane_halves, calibration=(calibrations or {}).get(name),
                                  sigma_calibrated=True, measured=measures.get(name))
@@ -365,8 +367,7 @@ def _gather_region(grid, stack, rows: slice, columns: slice) -> np.ndarray:
 
 
 def central(burst, frames, solver: Solver, side: int | None = None) -> dict:
-    """The central ``side`` (default :data:`CHECK_SIDE`) px of every grid, as (rows, columns) slices by
-    grid name."""
+    """The central ``side`` (default :data:`CHECK_SIDE`) px of every grid, (rows, columns) by grid name."""
     side = CHECK_SIDE if side is None else side
     return {grid.name: tuple(slice(max(0, (n - side) // 2), min(n, (n + side) // 2)) for n in grid.shape)
             for grid in grids_of(burst, frames, solver.method)}
@@ -374,14 +375,15 @@ def central(burst, frames, solver: Solver, side: int | None = None) -> dict:
 
 def measured_regions(burst, frames, solver: Solver) -> dict:
     """Where k's error is measured (on halves, on the burst the scene model predicts): each grid's
-    :func:`measured_squares` that are mostly photosites (a CFA's greens taken together lie on a lattice
-    turned 45 degrees, whose corners are off the sensor), by grid name."""
+    :func:`measured_squares`, by grid name, or its central square where one of those is not all
+    photosites (a CFA's greens taken together lie on a lattice turned 45 degrees: on a 12 MP mosaic two
+    of its four squares are off the sensor, two at its left and right edges, and with those two the
+    most precise tenth erred 1.35x its written sigma_k, 1.09x with the central square)."""
     regions = {}
     for grid in grids_of(burst, frames, solver.method):
         squares = measured_squares(grid.shape)
-        if len(squares) > 1:
-            on = grid.gather(np.ones(frames.shape[1:], np.float32))
-            squares = [square for square in squares if on[square].mean() >= 0.5] or measured_squares(grid.shape)[:1]
+        if len(squares) > 1 and not all(grid.gather(np.ones(frames.shape[1:], np.float32))[s].all() for s in squares):
+            squares = [tuple(slice((n - CHECK_SIDE) // 2, (n + CHECK_SIDE) // 2) for n in grid.shape)]
         regions[grid.name] = squares
     return regions
 
@@ -411,9 +413,9 @@ CHECK_SIDE = 256
 #: all 320 px, 1.12-1.30x on the central 256 (docs/limits.md, "Confidence").
 MEASURED_WHOLE = 1.5
 #: Spacing (px of a grid) of the squares k's error is measured on along an axis (:func:`measured_squares`):
-#: a large frame's scene is sampled across it, not at its centre alone. On the bench's 4000x3000x8
-#: dead-leaves burst (leaves up to 1000 px; `balanced`) the central 256 px set tenths of 0.69-1.07 over
-#: the frame, six squares 0.87-1.03, for 1.09x the estimate's time; a 12 MP mosaic's planes keep one.
+#: a large frame's scene sampled across it. On the bench's 4000x3000x8 dead-leaves burst (leaves up to
+#: 1000 px; `balanced`) the central 256 px set tenths of 0.69-1.07, six squares 0.87-1.03, for 1.09x the
+#: time. A 12 MP mosaic's colour planes and its greens' lattice (the accurate solver's) keep one.
 MEASURED_SPACING = 1536
 
 
