@@ -375,23 +375,23 @@ def central(burst, frames, solver: Solver, side: int | None = None) -> dict:
 
 def measured_regions(burst, frames, solver: Solver) -> dict:
     """Where k's error is measured (on halves, on the burst the scene model predicts): each grid's
-    :func:`measured_squares`, by grid name, or its central square where one of those is not all
-    photosites (a CFA's greens taken together lie on a lattice turned 45 degrees: on a 12 MP mosaic two
-    of its four squares are off the sensor, two at its left and right edges, and with those two the
-    most precise tenth erred 1.35x its written sigma_k, 1.09x with the central square)."""
-    regions = {}
+    :func:`measured_squares` by grid name, or its central square where one of those is not all photosites
+    (a CFA's greens together lie on a lattice turned 45 degrees, its other squares off the sensor or at
+    its edges: with those at the edges a 12 MP DNG's most precise tenth erred 1.35x, centrally 1.09x)."""
+    regions, middle = {}, central(burst, frames, solver)
     for grid in grids_of(burst, frames, solver.method):
         squares = measured_squares(grid.shape)
-        if len(squares) > 1 and not all(grid.gather(np.ones(frames.shape[1:], np.float32))[s].all() for s in squares):
-            squares = [tuple(slice((n - CHECK_SIDE) // 2, (n + CHECK_SIDE) // 2) for n in grid.shape)]
+        photosites = grid.gather(np.ones(frames.shape[1:], np.float32)) if len(squares) > 1 else None  # once
+        if photosites is not None and not all(photosites[square].all() for square in squares):
+            squares = [middle[grid.name]]
         regions[grid.name] = squares
     return regions
 
 
 def measured_squares(shape) -> list:
-    """The (rows, columns) slices of a grid of ``shape`` that k's error is measured on: all of an axis no
-    longer than :data:`MEASURED_WHOLE` times :data:`CHECK_SIDE`, else CHECK_SIDE px about the centre of
-    each of its equal cells, one per :data:`MEASURED_SPACING` px of it (at least one: the central CHECK_SIDE)."""
+    """The (rows, columns) slices of a grid of ``shape`` k's error is measured on: all of an axis up to
+    :data:`MEASURED_WHOLE` x :data:`CHECK_SIDE`, else CHECK_SIDE px about the centre of each of its equal
+    cells, one per :data:`MEASURED_SPACING` px of it (at least one)."""
     spans = []
     for n in shape:
         count = max(1, round(n / MEASURED_SPACING))

@@ -223,8 +223,8 @@ def _shared(d_full: np.ndarray, cross: np.ndarray, parts, prior: float, prior_se
     parts' excesses are fitted so (non-decreasing, weighted by their sampling variances:
     :func:`scipy.optimize.isotonic_regression`), each run of parts pooled to one excess and one standard
     error: a chance high of the FPN's scatter in one part is pooled with the parts beside it. Without,
-    each part's is its own: on a mosaic's colour plane aliasing errs most in flat patches (on a 12 MP x 16
-    12-bit RGGB burst, pooled, the most precise tenth erred 1.40x its written sigma_k; 1.09x part by part)."""
+    each part's is its own: on a mosaic's colour plane aliasing errs most in flat patches, and pooled, a
+    shared error of 3x sigma_k on the most precise tenth is spread over every tenth (tests/test_fpnmodel.py)."""
     from scipy.optimize import isotonic_regression
 
     shared = np.zeros(size)
@@ -237,24 +237,18 @@ def _shared(d_full: np.ndarray, cross: np.ndarray, parts, prior: float, prior_se
     # chi-square's 1 - SHARED_P quantile with one degree of freedom per part
     if not np.sum(excesses**2 / variances) > chi2_quantile(1 - SHARED_P, len(parts)):
         return shared
-    fit = isotonic_regression(excesses, weights=1.0 / variances) if monotone else \
-        _Runs(excesses, np.arange(len(parts) + 1))
-    for start, stop in zip(fit.blocks[:-1], fit.blocks[1:]):
-        excess, weights = float(fit.x[start]), variances[start:stop].min() / variances[start:stop]  # scaled to <= 1
+    runs, blocks = excesses, np.arange(len(parts) + 1)  # without monotone, each part a run of its own
+    if monotone:
+        fit = isotonic_regression(excesses, weights=1.0 / variances)
+        runs, blocks = fit.x, fit.blocks
+    for start, stop in zip(blocks[:-1], blocks[1:]):
+        excess, weights = float(runs[start]), variances[start:stop].min() / variances[start:stop]  # scaled to <= 1
         # the run's weighted mean's variance: its parts' own pooled, the prior's (in every part alike) not
         t2 = excess**2 / (float(np.sum(weights**2 * (variances[start:stop] - prior_se**2))) / float(weights.sum()) ** 2
                           + prior_se**2)
         for part in parts[start:stop]:
             shared[part] = max(excess, 0.0) * t2 / (SHARED_T2 + t2)  # taken in as far as it stands out of its noise
     return shared
-
-
-@dataclass(frozen=True)
-class _Runs:
-    """Each part a run of its own (as :func:`scipy.optimize.isotonic_regression` returns runs)."""
-
-    x: np.ndarray
-    blocks: np.ndarray
 
 
 #: Distance (px, Chebyshev) at which :func:`_smooth` reads the error the halves share: past the reach
